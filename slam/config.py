@@ -1,0 +1,264 @@
+"""Typed configuration loaded from YAML recipes in ``configs/``.
+
+A recipe is a mapping with the sections ``source``, ``frontend``, ``backend``,
+``factors`` and ``output``. ``frontend`` and ``backend`` name a plugin
+(``name: improved_floam``) and carry that plugin's own keys, validated against the
+plugin's ``Config`` dataclass. ``factors`` maps a factor plugin name (or an import
+path ``package.module:Class``) to its keys. A recipe may start from another with
+``base: NAME``. Unknown keys anywhere are errors that list the valid ones.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from slam.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_CONFIG = "improved_floam"
+
+
+@dataclass
+class SourceConfig:
+    """Which messages to read: topic (None = the only point-cloud topic), frame range."""
+
+    topic: str | None = None
+    max_frames: int | None = None
+    skip_frames: int = 0
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes besides the trajectories. map_voxel in metres."""
+
+    write_map: bool = True
+    map_voxel: float = 0.1
+    map_format: str = "pcd"
+
+
+@dataclass
+class SlamConfig:
+    """A whole run. Plugin sections stay dicts until the plugin's own Config validates them."""
+
+    frontend: dict[str, Any] = field(default_factory=lambda: {"name": "improved_floam"})
+    backend: dict[str, Any] = field(default_factory=lambda: {"name": "isam2"})
+    factors: dict[str, dict[str, Any]] = field(
+        default_factory=lambda: {"prior": {}, "odometry": {}}
+    )
+    source: SourceConfig = field(default_factory=SourceConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    name: str = "custom"
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+# --------------------------------------------------------------------------- building
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check/convert one value against a type hint; raise ConfigError naming ``where``."""
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        return build_dataclass(tp, value, where)
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        items = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        return dict(value)
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    return value
+
+
+def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config") -> Any:
+    """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list."""
+    data = dict(data or {})
+    hints = typing.get_type_hints(cls)
+    valid = [f.name for f in dataclasses.fields(cls) if f.init]
+    unknown = sorted(set(data) - set(valid))
+    if unknown:
+        raise ConfigError(
+            f"unknown key{'s' if len(unknown) > 1 else ''} "
+            + ", ".join(f"'{where}.{k}'" for k in unknown)
+            + f"; valid keys of '{where}': {', '.join(valid)}"
+        )
+    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def available_configs() -> list[str]:
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config must be a mapping of sections")
+    return data
+
+
+def _locate(name_or_path: str) -> Path:
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml"):
+        if not path.is_file():
+            raise ConfigError(f"config file not found: {path}")
+        return path
+    candidate = CONFIG_DIR / f"{name_or_path}.yaml"
+    if candidate.is_file():
+        return candidate
+    raise ConfigError(
+        f"unknown config '{name_or_path}'; built-in configs: {', '.join(available_configs())}"
+        " (or give a path to a .yaml file)"
+    )
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Recursive dict merge; ``over`` wins. A plugin section changing ``name`` replaces it whole."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if (
+            isinstance(value, dict)
+            and isinstance(out.get(key), dict)
+            and not ("name" in value and value.get("name") != out[key].get("name"))
+        ):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load_raw(name_or_path: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The merged mapping of a recipe and its ``base:`` chain."""
+    path = _locate(name_or_path)
+    if str(path) in _seen:
+        raise ConfigError(f"config 'base' chain loops through {path}")
+    data = _read_yaml(path)
+    base = data.pop("base", None)
+    data.setdefault("name", path.stem)
+    if base:
+        merged = deep_merge(load_raw(str(base), _seen + (str(path),)), data)
+        merged["name"] = data["name"]
+        return merged
+    return data
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``section.key=value`` -> (["section", "key"], parsed YAML value)."""
+    if "=" not in text:
+        raise ConfigError(f"override '{text}' must look like section.key=value")
+    key, _, value = text.partition("=")
+    parts = [p for p in key.strip().split(".") if p]
+    if not parts:
+        raise ConfigError(f"override '{text}' has an empty key")
+    try:
+        parsed = yaml.safe_load(value) if value.strip() else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override '{text}': value is not valid YAML ({exc})") from exc
+    return parts, parsed
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    out = copy.deepcopy(raw)
+    for text in overrides:
+        parts, value = parse_override(text)
+        node = out
+        for part in parts[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"override '{text}': '{part}' is not a section")
+            node = child
+        node[parts[-1]] = value
+    return out
+
+
+def from_dict(raw: dict[str, Any]) -> SlamConfig:
+    """Validate a raw mapping into a SlamConfig (plugin keys are validated by the plugins)."""
+    raw = dict(raw)
+    for section in ("frontend", "backend"):
+        value = raw.get(section)
+        if value is not None and (not isinstance(value, dict) or "name" not in value):
+            raise ConfigError(f"'{section}' must be a mapping with a 'name' key")
+    factors = raw.get("factors")
+    if factors is not None:
+        if not isinstance(factors, dict):
+            raise ConfigError("'factors' must map factor plugin names to their settings")
+        raw["factors"] = {k: dict(v or {}) for k, v in factors.items()}
+    return build_dataclass(SlamConfig, raw, "config")
+
+
+def load_config(name_or_path: str | None = None, overrides: list[str] | None = None) -> SlamConfig:
+    """Load a recipe by name (``configs/NAME.yaml``) or path, apply ``--set`` overrides."""
+    raw = load_raw(name_or_path or DEFAULT_CONFIG)
+    raw = apply_overrides(raw, overrides or [])
+    return from_dict(raw)
+
+
+def save_config(config: SlamConfig, path: Path, resolved: dict[str, Any] | None = None) -> None:
+    """Write the config (or the fully resolved dict, with plugin defaults filled in) as YAML."""
+    data = resolved if resolved is not None else config.to_dict()
+    path.write_text(yaml.safe_dump(data, sort_keys=False))

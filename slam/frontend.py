@@ -1,0 +1,33 @@
+"""The front-end contract and the keyframe policy shared by front ends."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from slam.types import Odometry, Scan
+
+
+@runtime_checkable
+class Frontend(Protocol):
+    """Turns scans into odometry. Never imports gtsam."""
+
+    def process(self, scan: Scan) -> Odometry: ...
+
+
+@dataclass
+class KeyframeConfig:
+    """A new keyframe after this much motion since the last one (metres, degrees)."""
+
+    translation: float = 1.0
+    rotation_deg: float = 10.0
+
+
+def is_new_keyframe(T_prevkf_current: np.ndarray, cfg: KeyframeConfig) -> bool:
+    """True when the motion since the previous keyframe passes either threshold."""
+    t = float(np.linalg.norm(T_prevkf_current[:3, 3]))
+    cos = (np.trace(T_prevkf_current[:3, :3]) - 1.0) / 2.0
+    angle = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return t >= cfg.translation or angle >= cfg.rotation_deg

@@ -1,0 +1,1 @@
+"""Inputs (bags, KITTI folders, PCD/PLY folders) and outputs (trajectories, maps)."""
