@@ -40,7 +40,9 @@ class FactorConfig:
 
     def __post_init__(self) -> None:
         if self.robust not in ROBUST_KERNELS:
-            raise ValueError(f"robust must be one of {', '.join(ROBUST_KERNELS)}, got '{self.robust}'")
+            raise ValueError(
+                f"robust must be one of {', '.join(ROBUST_KERNELS)}, got '{self.robust}'"
+            )
 
 
 class GraphView:

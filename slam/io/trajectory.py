@@ -43,7 +43,9 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         rows = np.loadtxt(path, comments="#", ndmin=2)
     except ValueError as exc:
-        raise InputError(f"{path}: not a TUM trajectory (stamp tx ty tz qx qy qz qw): {exc}") from exc
+        raise InputError(
+            f"{path}: not a TUM trajectory (stamp tx ty tz qx qy qz qw): {exc}"
+        ) from exc
     if rows.size == 0:
         raise InputError(f"{path}: trajectory is empty")
     if rows.shape[1] != 8:

@@ -1,0 +1,22 @@
+# `make demo`: set up, simulate the corridor sequence, run floam / improved_floam /
+# improved_floam_loop on it and print the APE table (outputs under runs/demo/).
+# `make test`: set up and run the test suite.
+.PHONY: setup demo test lint bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	.venv/bin/slam demo --out runs/demo
+
+test: setup
+	.venv/bin/python -m pytest -q
+
+lint: setup
+	.venv/bin/ruff check . && .venv/bin/ruff format --check .
+
+bench: setup
+	for b in benchmarks/bench_*.py; do .venv/bin/python $$b || exit 1; done
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Create .venv and install the package with its dependencies (idempotent).
+# Installs libusb-1.0 (open3d needs it) with apt-get when it is missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+need_lib() { ! ldconfig -p 2>/dev/null | grep -q "$1"; }
+missing=()
+need_lib "libusb-1.0.so.0" && missing+=(libusb-1.0-0)
+need_lib "libgomp.so.1" && missing+=(libgomp1)
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "installing system libraries: ${missing[*]}" >&2
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)
+if [ ! -f "$stamp" ]; then
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+  .venv/bin/python -m pip install -q -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
+  .venv/bin/python -c "import gtsam, open3d, rosbags, evo, small_gicp" 
+  touch "$stamp"
+fi

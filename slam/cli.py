@@ -1,0 +1,458 @@
+"""The ``slam`` command: one entry point, sub-commands. Only this module prints and exits.
+
+Exit codes: 0 ok, 1 unexpected failure, 2 bad input or config, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from slam.errors import ConfigError, InputError, SlamError
+
+EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+DEFAULT_COMPARE = ["floam", "improved_floam", "improved_floam_loop"]
+
+log = logging.getLogger("slam")
+
+
+def _eprint(*args: Any) -> None:
+    print(*args, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- running
+
+
+def default_out_dir(config_name: str) -> Path:
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config_name}"
+
+
+def disable_loops(config: Any) -> None:
+    """``--no-loop``: switch off every factor plugin that closes loops."""
+    from slam import plugins
+
+    for name, params in config.factors.items():
+        cls = plugins.load("slam.factors", params.get("plugin", name))
+        if getattr(cls, "is_loop", False):
+            params["enabled"] = False
+
+
+def run_one(
+    bag: Path,
+    config: Any,
+    out: Path,
+    *,
+    topic: str | None = None,
+    gt: Path | None = None,
+    quiet: bool = False,
+    label: str | None = None,
+) -> dict[str, Any]:
+    """Run one configuration on one input, write all outputs; returns a summary dict."""
+    from tqdm import tqdm
+
+    from slam.io.source import open_source
+    from slam.outputs import write_outputs
+    from slam.pipeline import Pipeline, resolved_config
+
+    resolved = resolved_config(config)
+    source = open_source(bag, topic=topic or config.source.topic)
+    pipeline = Pipeline(config)
+    total = len(source)
+    if config.source.max_frames is not None:
+        total = min(total, config.source.max_frames) if total else config.source.max_frames
+    bar = tqdm(
+        total=total or None,
+        unit="frame",
+        desc=label or config.name,
+        disable=quiet,
+        dynamic_ncols=True,
+        file=sys.stderr,
+    )
+    last = [0]
+
+    def on_frame(n: int) -> None:
+        bar.update(n - last[0])
+        last[0] = n
+
+    try:
+        state = pipeline.run(
+            source,
+            on_frame=on_frame,
+            max_frames=config.source.max_frames,
+            skip_frames=config.source.skip_frames,
+        )
+    finally:
+        bar.close()
+    written = write_outputs(
+        pipeline,
+        out,
+        resolved_config=resolved,
+        extra_metrics={"input": str(bag), "topic": getattr(source, "topic", None)},
+    )
+    summary: dict[str, Any] = {
+        "out": out,
+        "frames": state.frames,
+        "keyframes": len(state.keyframes),
+        "stopped_by": state.stopped_by,
+        "written": written,
+        "pipeline": pipeline,
+    }
+    if gt is not None and state.frames > 1:
+        summary["eval"] = evaluate_run(out, gt, pipeline, title=label or config.name)
+    return summary
+
+
+def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") -> Any:
+    """APE/RPE against ground truth, plots and the HTML report of one run."""
+    from slam.eval.metrics import evaluate
+    from slam.eval.plots import plot_all
+    from slam.eval.report import write_report
+    from slam.eval.tables import ape_table, format_table
+
+    result = evaluate(out / "trajectory.tum", gt)
+    (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
+    loops = _loop_positions(pipeline) if pipeline is not None else None
+    images = plot_all(result, out / "plots", loops=loops)
+    table = format_table(ape_table({title: result.ape_trans}), "markdown")
+    metrics = (
+        json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
+    )
+    write_report(
+        out / "report.html",
+        title=f"SLAM run: {title}",
+        tables={"APE (translation, m)": table},
+        images=images,
+        meta={
+            "ground truth": str(gt),
+            **{k: v for k, v in metrics.items() if not isinstance(v, dict)},
+        },
+    )
+    return result
+
+
+def _loop_positions(pipeline: Any) -> list | None:
+    """Pairs of optimised keyframe positions for each accepted loop, for the plots."""
+    st = pipeline.state
+    pairs = []
+    for source in pipeline.factor_sources:
+        for ev in getattr(source.plugin, "events", []):
+            if ev.accepted and ev.source in st.estimates and ev.target in st.estimates:
+                pairs.append(
+                    (st.estimates[ev.target][:3, 3].copy(), st.estimates[ev.source][:3, 3].copy())
+                )
+    return pairs or None
+
+
+def _print_run_summary(summary: dict[str, Any]) -> None:
+    out = summary["out"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    fps = metrics.get("frames_per_second")
+    _eprint(
+        f"{summary['frames']} frames, {summary['keyframes']} keyframes, "
+        f"{metrics.get('loops_closed', 0)} loop factors, {fps} frames/s, "
+        f"peak memory {metrics.get('peak_memory_mb')} MiB"
+    )
+    if "eval" in summary:
+        ape = summary["eval"].ape_trans
+        _eprint(
+            "APE translation [m]: "
+            + "  ".join(f"{k} {ape[k]:.4f}" for k in ("rmse", "mean", "median", "max") if k in ape)
+        )
+    _eprint(f"outputs written to {out}/")
+
+
+def _stop_code(summary: dict[str, Any]) -> int:
+    stopped = summary.get("stopped_by")
+    if not stopped:
+        return EXIT_OK
+    _eprint(f"run stopped early: {stopped}; everything computed so far is in {summary['out']}/")
+    return EXIT_INTERRUPTED if stopped.startswith("interrupted") else EXIT_BAD_INPUT
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from slam.config import load_config
+
+    config = load_config(args.config, args.set)
+    if args.max_frames is not None:
+        config.source.max_frames = args.max_frames
+    if args.no_loop:
+        disable_loops(config)
+    out = Path(args.out) if args.out else default_out_dir(config.name)
+    summary = run_one(
+        Path(args.bag), config, out, topic=args.topic, gt=_gt(args.gt), quiet=args.quiet
+    )
+    _print_run_summary(summary)
+    return _stop_code(summary)
+
+
+def _gt(path: str | None) -> Path | None:
+    if path is None:
+        return None
+    gt = Path(path)
+    if not gt.is_file():
+        raise InputError(f"ground-truth file not found: {gt}")
+    return gt
+
+
+# --------------------------------------------------------------------------- compare
+
+
+def compare(
+    bag: Path,
+    gt: Path,
+    configs: list[str],
+    out: Path,
+    *,
+    overrides: list[str] | None = None,
+    topic: str | None = None,
+    quiet: bool = False,
+    max_frames: int | None = None,
+) -> dict[str, Any]:
+    """Run each config on the same input; the papers' APE table, plots and report."""
+    from slam.config import load_config
+    from slam.eval.plots import plot_all
+    from slam.eval.report import write_report
+    from slam.eval.tables import ape_table, format_table
+
+    results: dict[str, Any] = {}
+    stops: dict[str, str | None] = {}
+    for name in configs:
+        config = load_config(name, overrides)
+        if max_frames is not None:
+            config.source.max_frames = max_frames
+        summary = run_one(
+            bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
+        )
+        stops[config.name] = summary["stopped_by"]
+        if "eval" in summary:
+            results[config.name] = summary["eval"]
+        if summary["stopped_by"]:
+            break
+    rows = ape_table({k: v.ape_trans for k, v in results.items()})
+    tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
+    (out / "compare.md").write_text(tables["markdown"])
+    (out / "compare.csv").write_text(tables["csv"])
+    images = plot_all(results, out / "plots", prefix="compare_") if results else []
+    write_report(
+        out / "report.html",
+        title=f"SLAM comparison on {bag.name}",
+        tables={"APE (translation, m)": tables["markdown"]},
+        images=images,
+        meta={"input": str(bag), "ground truth": str(gt), "configs": ", ".join(configs)},
+    )
+    return {"results": results, "tables": tables, "out": out, "stops": stops}
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    out = Path(args.out) if args.out else default_out_dir("compare")
+    res = compare(
+        Path(args.bag),
+        _gt(args.gt),
+        args.configs or DEFAULT_COMPARE,
+        out,
+        overrides=args.set,
+        topic=args.topic,
+        quiet=args.quiet,
+        max_frames=args.max_frames,
+    )
+    print(res["tables"]["text"])
+    _eprint(f"table, plots and report written to {out}/")
+    for name, stopped in res["stops"].items():
+        if stopped:
+            _eprint(f"{name}: stopped early: {stopped}")
+            return EXIT_INTERRUPTED if stopped.startswith("interrupted") else EXIT_BAD_INPUT
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- other commands
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from slam.sim.simulate import simulate
+
+    res = simulate(
+        args.scene,
+        Path(args.out),
+        frames=args.frames,
+        fmt=args.format,
+        seed=args.seed,
+        pedestrians=not args.no_pedestrians,
+    )
+    _eprint(f"wrote {res.frames} scans to {res.bag} and ground truth to {res.ground_truth}")
+    return EXIT_OK
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from slam.eval.metrics import EvalOptions, evaluate
+    from slam.eval.tables import ape_table, format_table
+
+    options = EvalOptions(align=args.align, n_align=args.n_align)
+    result = evaluate(Path(args.est), _gt(args.gt), options)
+    print(format_table(ape_table({Path(args.est).stem: result.ape_trans}), "text"))
+    data = result.to_dict()
+    for key in ("rpe_trans", "rpe_rot", "kitti"):
+        if data.get(key):
+            print(f"{key}: " + json.dumps(data[key]))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "ape.json").write_text(json.dumps(data, indent=2))
+        from slam.eval.plots import plot_all
+
+        plot_all(result, out / "plots")
+        _eprint(f"results written to {out}/")
+    return EXIT_OK
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from slam.io.info import describe
+
+    info = describe(Path(args.bag))
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        _print_info(info)
+    return EXIT_OK
+
+
+def _print_info(info: dict[str, Any]) -> None:
+    for key, value in info.items():
+        if key != "topics":
+            print(f"{key}: {value}")
+    for topic, t in (info.get("topics") or {}).items():
+        print(f"{topic}")
+        for k, v in t.items():
+            if k == "fields":
+                print(
+                    "    fields: "
+                    + ", ".join(
+                        f"{f['name']}:{f['datatype']}@{f['offset']}"
+                        if isinstance(f, dict)
+                        else str(f)
+                        for f in v
+                    )
+                )
+            else:
+                print(f"    {k}: {v}")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from slam.sim.cache import ensure_sequence
+
+    out = Path(args.out) if args.out else default_out_dir("demo")
+    _eprint(f"simulating the '{args.scene}' sequence (cached after the first time)...")
+    seq = ensure_sequence(args.scene, frames=args.frames)
+    _eprint(f"sequence: {seq.bag} ({seq.frames} scans), ground truth {seq.ground_truth}")
+    res = compare(seq.bag, seq.ground_truth, args.configs or DEFAULT_COMPARE, out, quiet=args.quiet)
+    print(res["tables"]["text"])
+    _eprint(f"demo outputs (trajectories, maps, plots, report.html) in {out}/")
+    return EXIT_OK
+
+
+def cmd_configs(args: argparse.Namespace) -> int:
+    from slam import plugins
+    from slam.config import available_configs
+
+    print("configs: " + ", ".join(available_configs()))
+    for group in plugins.GROUPS:
+        print(f"{group}: " + ", ".join(plugins.available(group)))
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="slam", description=__doc__.splitlines()[0])
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def common_run(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--topic", help="point-cloud topic (default: the only one in the bag)")
+        q.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="SECTION.KEY=VALUE",
+            help="override a config value, e.g. --set frontend.sor.k=8",
+        )
+        q.add_argument("--out", help="output folder (default: runs/<time>-<config>)")
+        q.add_argument("--max-frames", type=int, help="stop after this many frames")
+        q.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    q = sub.add_parser("run", help="run SLAM on a bag / KITTI folder / PCD folder")
+    q.add_argument("bag")
+    q.add_argument("--config", default=None, help="config name in configs/ or a YAML path")
+    q.add_argument("--no-loop", action="store_true", help="switch loop closure off")
+    q.add_argument("--gt", help="ground truth (TUM) to evaluate against")
+    common_run(q)
+    q.set_defaults(func=cmd_run)
+
+    q = sub.add_parser("compare", help="run several configs on one bag; the papers' APE table")
+    q.add_argument("bag")
+    q.add_argument("--gt", required=True, help="ground truth (TUM)")
+    q.add_argument("--configs", nargs="+", help=f"configs (default: {' '.join(DEFAULT_COMPARE)})")
+    common_run(q)
+    q.set_defaults(func=cmd_compare)
+
+    q = sub.add_parser("simulate", help="simulate a 16-beam lidar sequence into a bag")
+    q.add_argument("scene", help="corridor | plaza")
+    q.add_argument("out", help="output folder")
+    q.add_argument("--frames", type=int, help="number of scans (default: the whole path)")
+    q.add_argument("--format", default="ros1", choices=["ros1", "ros2", "mcap"])
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--no-pedestrians", action="store_true")
+    q.set_defaults(func=cmd_simulate)
+
+    q = sub.add_parser("eval", help="APE/RPE/KITTI metrics of a trajectory against ground truth")
+    q.add_argument("est")
+    q.add_argument("gt")
+    q.add_argument("--align", default="se3", choices=["se3", "sim3", "none"])
+    q.add_argument("--n-align", type=int, default=-1, help="align on the first N poses only")
+    q.add_argument("--out", help="write ape.json and plots here")
+    q.set_defaults(func=cmd_eval)
+
+    q = sub.add_parser("info", help="topics, message counts, field layout and rate of a bag")
+    q.add_argument("bag")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_info)
+
+    q = sub.add_parser("demo", help="simulate a sequence, run and compare the default configs")
+    q.add_argument("--scene", default="corridor")
+    q.add_argument("--frames", type=int, help="truncate the simulated sequence")
+    q.add_argument("--configs", nargs="+")
+    q.add_argument("--out")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=cmd_demo)
+
+    q = sub.add_parser("configs", help="list built-in configs and installed plugins")
+    q.set_defaults(func=cmd_configs)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        _eprint("interrupted")
+        return EXIT_INTERRUPTED
+    except (InputError, ConfigError) as exc:
+        _eprint(f"error: {exc}")
+        return EXIT_BAD_INPUT
+    except SlamError as exc:
+        _eprint(f"error: {exc}")
+        return EXIT_FAIL
+
+
+if __name__ == "__main__":
+    sys.exit(main())

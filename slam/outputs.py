@@ -1,0 +1,121 @@
+"""Writing the files of a run (names fixed by DESIGN.md; scripts rely on them)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam.io.trajectory import write_kitti, write_tum
+from slam.pipeline import Pipeline
+
+log = logging.getLogger(__name__)
+
+TRAJECTORY_TUM = "trajectory.tum"
+TRAJECTORY_KITTI = "trajectory.kitti"
+ODOMETRY_TUM = "odometry.tum"
+MAP_PCD = "map.pcd"
+GRAPH_G2O = "graph.g2o"
+METRICS_JSON = "metrics.json"
+CONFIG_YAML = "config.yaml"
+LOOPS_CSV = "loops.csv"
+REPORT_HTML = "report.html"
+APE_JSON = "ape.json"
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process in MiB."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
+
+
+def build_map(pipeline: Pipeline) -> np.ndarray:
+    """Keyframe clouds transformed by the optimised keyframe poses, stacked (M,3) world frame."""
+    st = pipeline.state
+    parts = []
+    for kf in st.keyframes:
+        if kf.cloud is None or len(kf.cloud) == 0:
+            continue
+        T = st.estimates.get(kf.id, kf.pose_odom)
+        parts.append(kf.cloud @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def write_trajectories(pipeline: Pipeline, out: Path) -> list[Path]:
+    st = pipeline.state
+    if st.frames == 0:
+        return []
+    stamps = np.asarray(st.stamps)
+    traj = st.trajectory()
+    write_tum(out / TRAJECTORY_TUM, stamps, traj)
+    write_kitti(out / TRAJECTORY_KITTI, traj)
+    write_tum(out / ODOMETRY_TUM, stamps, np.stack(st.odom_poses))
+    return [out / TRAJECTORY_TUM, out / TRAJECTORY_KITTI, out / ODOMETRY_TUM]
+
+
+def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Counts, timings and memory of a run (metrics.json)."""
+    st = pipeline.state
+    fe = st.stage_seconds.get("frontend", 0.0)
+    return {
+        "frames": st.frames,
+        "keyframes": len(st.keyframes),
+        "skipped_frames": st.skipped_frames,
+        "loops_closed": st.loops_closed,
+        "factors": dict(st.factor_counts),
+        "seconds": {k: round(v, 4) for k, v in st.stage_seconds.items()},
+        "wall_seconds": round(st.wall_seconds, 3),
+        "frames_per_second": round(st.frames / st.wall_seconds, 2) if st.wall_seconds else None,
+        "frontend_frames_per_second": round(st.frames / fe, 2) if fe else None,
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+        "stopped_by": st.stopped_by,
+        **(extra or {}),
+    }
+
+
+def write_outputs(
+    pipeline: Pipeline,
+    out: Path,
+    *,
+    resolved_config: dict[str, Any],
+    extra_metrics: dict[str, Any] | None = None,
+) -> dict[str, Path]:
+    """Write every output of a run; each file is attempted even if another fails."""
+    import yaml
+
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+    (out / CONFIG_YAML).write_text(yaml.safe_dump(resolved_config, sort_keys=False))
+    written["config"] = out / CONFIG_YAML
+    for path in write_trajectories(pipeline, out):
+        written[path.name] = path
+    st = pipeline.state
+    if pipeline.config.output.write_map and st.keyframes:
+        try:
+            from slam.io.maps import write_map
+
+            name = MAP_PCD if pipeline.config.output.map_format == "pcd" else "map.ply"
+            write_map(out / name, build_map(pipeline), pipeline.config.output.map_voxel)
+            written["map"] = out / name
+        except Exception as exc:  # noqa: BLE001 - a failed map must not lose the trajectories
+            log.warning("map not written: %s", exc)
+    if st.keyframes:
+        try:
+            from slam.pose_graph import write_g2o
+
+            write_g2o(out / GRAPH_G2O, pipeline.backend.graph(), pipeline.backend.values())
+            written["graph"] = out / GRAPH_G2O
+        except Exception as exc:  # noqa: BLE001
+            log.warning("pose graph not written: %s", exc)
+    for source in pipeline.factor_sources:
+        if hasattr(source.plugin, "write_csv"):
+            source.plugin.write_csv(out / LOOPS_CSV)
+            written["loops"] = out / LOOPS_CSV
+    (out / METRICS_JSON).write_text(json.dumps(metrics(pipeline, extra_metrics), indent=2))
+    written["metrics"] = out / METRICS_JSON
+    return written

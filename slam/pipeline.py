@@ -1,0 +1,259 @@
+"""The SLAM pipeline: scans -> front end -> factor plugins -> back end -> trajectory.
+
+Orchestration only: algorithms live in the plugins. The pipeline keeps, for every
+input frame, its keyframe and its pose relative to that keyframe, so that the final
+trajectory of every frame follows the optimised keyframes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from slam import plugins
+from slam.config import SlamConfig
+from slam.errors import InputError
+from slam.factors import GraphView, pose3
+from slam.types import Keyframe, Scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FactorSource:
+    """One enabled factor plugin with the name it was configured under."""
+
+    name: str
+    plugin: Any
+
+    @property
+    def is_loop(self) -> bool:
+        return bool(getattr(self.plugin, "is_loop", False))
+
+
+def build_factor_plugins(factors: dict[str, dict[str, Any]]) -> list[FactorSource]:
+    """Instantiate the enabled factor plugins, in config order.
+
+    A section's name is the plugin name, or give ``plugin: package.module:Class`` to
+    load a user's class under any section name.
+    """
+    out = []
+    for name, params in factors.items():
+        params = dict(params)
+        spec = params.pop("plugin", name)
+        cls = plugins.load("slam.factors", spec)
+        cfg = plugins.plugin_config(cls, params, f"factors.{name}")
+        if cfg is not None and not getattr(cfg, "enabled", True):
+            continue
+        out.append(FactorSource(name, cls(cfg) if cfg is not None else cls()))
+    return out
+
+
+@dataclass
+class RunState:
+    """Everything a run has computed so far (written out even when the run stops early)."""
+
+    stamps: list[float] = field(default_factory=list)
+    odom_poses: list[np.ndarray] = field(default_factory=list)
+    frame_kf: list[int] = field(default_factory=list)
+    T_kf_frame: list[np.ndarray] = field(default_factory=list)
+    keyframes: list[Keyframe] = field(default_factory=list)
+    factor_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    stage_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    skipped_frames: int = 0
+    loops_closed: int = 0
+    estimates: dict[int, np.ndarray] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    stopped_by: str | None = None
+
+    @property
+    def frames(self) -> int:
+        return len(self.stamps)
+
+    def trajectory(self) -> np.ndarray:
+        """(N,4,4) optimised pose of every frame: keyframe estimate composed with T_kf_frame."""
+        if not self.stamps:
+            return np.zeros((0, 4, 4))
+        kf_poses = np.stack([self.estimates[k] for k in self.frame_kf])
+        return kf_poses @ np.stack(self.T_kf_frame)
+
+
+class Pipeline:
+    """Runs one configuration over a scan source."""
+
+    def __init__(
+        self,
+        config: SlamConfig,
+        *,
+        frontend: Any = None,
+        backend: Any = None,
+        factor_sources: list[FactorSource] | None = None,
+    ):
+        self.config = config
+        self.frontend = frontend or plugins.instantiate(
+            "slam.frontends", config.frontend, "frontend"
+        )
+        self.backend = backend or plugins.instantiate("slam.backends", config.backend, "backend")
+        self.factor_sources = (
+            factor_sources if factor_sources is not None else build_factor_plugins(config.factors)
+        )
+        self.state = RunState()
+        self._estimate_cache: dict[int, np.ndarray] | None = None
+        self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
+        self.view = GraphView(self.state.keyframes, self._estimate)
+
+    # ------------------------------------------------------------------ graph view
+    def _estimate(self, kf_id: int) -> np.ndarray:
+        if self._pending is not None and kf_id == self._pending[0]:
+            return self._pending[1]
+        if self._estimate_cache is None or kf_id not in self._estimate_cache:
+            self._estimate_cache = {k: v.matrix() for k, v in self.backend.estimate().items()}
+        if kf_id in self._estimate_cache:
+            return self._estimate_cache[kf_id]
+        return self.state.keyframes[kf_id].pose_odom
+
+    # ------------------------------------------------------------------ per frame
+    def step(self, scan: Scan) -> None:
+        """Process one scan through front end, factor plugins and back end."""
+        st = self.state
+        t0 = time.perf_counter()
+        odom = self.frontend.process(scan)
+        st.stage_seconds["frontend"] += time.perf_counter() - t0
+        if odom.extras.get("skipped"):
+            st.skipped_frames += 1
+        if odom.is_keyframe or not st.keyframes:
+            self._add_keyframe(scan, odom)
+        kf = st.keyframes[-1]
+        # appended together so that an interrupt never leaves the per-frame lists ragged
+        st.stamps.append(float(scan.stamp))
+        st.odom_poses.append(np.asarray(odom.pose, dtype=float))
+        st.frame_kf.append(kf.id)
+        st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, odom.pose))
+
+    def _add_keyframe(self, scan: Scan, odom: Any) -> None:
+        st = self.state
+        kf_id = len(st.keyframes)
+        cloud = odom.cloud if odom.cloud is not None else np.zeros((0, 3))
+        kf = Keyframe(
+            id=kf_id,
+            stamp=float(scan.stamp),
+            frame_index=len(st.stamps),
+            pose_odom=np.asarray(odom.pose, dtype=float),
+            relative=np.asarray(odom.relative, dtype=float),
+            info=np.asarray(odom.info, dtype=float),
+            cloud=np.asarray(cloud, dtype=float),
+            extras=dict(odom.extras),
+        )
+        if kf_id == 0:
+            initial_T = kf.pose_odom
+        else:
+            initial_T = self._estimate(kf_id - 1) @ kf.relative
+        st.keyframes.append(kf)
+        self._pending = (kf_id, initial_T)
+        factors: list[Any] = []
+        loop_closed = False
+        for source in self.factor_sources:
+            t0 = time.perf_counter()
+            new = list(source.plugin.on_keyframe(kf, self.view))
+            st.stage_seconds[f"factor:{source.name}"] += time.perf_counter() - t0
+            st.factor_counts[source.name] += len(new)
+            if new and source.is_loop:
+                loop_closed = True
+                st.loops_closed += len(new)
+            factors.extend(new)
+        t0 = time.perf_counter()
+        self.backend.update(factors, {kf_id: pose3(initial_T)}, loop_closed=loop_closed)
+        st.stage_seconds["backend"] += time.perf_counter() - t0
+        self._estimate_cache = None
+        self._pending = None
+
+    # ------------------------------------------------------------------ whole run
+    def run(
+        self,
+        scans: Iterable[Scan],
+        *,
+        on_frame: Callable[[int], None] | None = None,
+        max_frames: int | None = None,
+        skip_frames: int = 0,
+    ) -> RunState:
+        """Process ``scans`` until exhausted, ``max_frames``, Ctrl-C or a bad message.
+
+        A KeyboardInterrupt or InputError stops the loop; the state so far is finalised
+        (``state.stopped_by`` says why) and the exception is re-raised by the caller's
+        choice via :meth:`finish`. Never loses computed frames.
+        """
+        st = self.state
+        start = time.perf_counter()
+        try:
+            for i, scan in enumerate(scans):
+                if i < skip_frames:
+                    continue
+                if max_frames is not None and st.frames >= max_frames:
+                    break
+                self.step(scan)
+                if on_frame is not None:
+                    on_frame(st.frames)
+        except KeyboardInterrupt:
+            st.stopped_by = "interrupted (Ctrl-C)"
+        except InputError as exc:
+            st.stopped_by = f"bad input: {exc}"
+        finally:
+            st.wall_seconds += time.perf_counter() - start
+            self.finish()
+        return st
+
+    def finish(self) -> None:
+        """Final optimisation; fills ``state.estimates`` for every keyframe."""
+        st = self.state
+        if not st.keyframes:
+            return
+        t0 = time.perf_counter()
+        est = self.backend.finalize()
+        st.stage_seconds["backend_final"] += time.perf_counter() - t0
+        st.estimates = {k: v.matrix() for k, v in est.items()}
+        for kf in st.keyframes:  # a keyframe the back end never saw (stopped mid-update)
+            if kf.id not in st.estimates:
+                st.estimates[kf.id] = kf.pose_odom
+
+
+def resolved_config(config: SlamConfig) -> dict[str, Any]:
+    """The config with every plugin's defaults filled in (what config.yaml records)."""
+    import dataclasses
+
+    def section(group: str, params: dict[str, Any], where: str) -> dict[str, Any]:
+        params = dict(params)
+        spec = params.pop("plugin", None)
+        name = params.get("name", where.split(".")[-1])
+        cls = plugins.load(group, spec or name)
+        cfg = plugins.plugin_config(cls, {k: v for k, v in params.items() if k != "name"}, where)
+        full = dataclasses.asdict(cfg) if cfg is not None else {}
+        head = {"name": params["name"]} if "name" in params else {}
+        if spec:
+            head["plugin"] = spec
+        return {**head, **full}
+
+    out = config.to_dict()
+    out["frontend"] = section("slam.frontends", config.frontend, "frontend")
+    out["backend"] = section("slam.backends", config.backend, "backend")
+    out["factors"] = {
+        name: section("slam.factors", params, f"factors.{name}")
+        for name, params in config.factors.items()
+    }
+    return _plain(out)
+
+
+def _plain(obj: Any) -> Any:
+    """Tuples -> lists, numpy scalars -> Python, so that YAML stays readable."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
