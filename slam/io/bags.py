@@ -1,0 +1,257 @@
+"""Read scans from ROS bags: ROS1 ``.bag``, ROS2 ``.db3`` and ``.mcap``, via rosbags' AnyReader.
+
+Topic choice: the given topic, else the only PointCloud2 topic, else the only LaserScan
+topic; anything else raises TopicError listing the topics. Every rosbags/decoding failure
+becomes an InputError; one raised while iterating names the message index, so a caller
+can stop and still save what it computed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from slam.errors import InputError, TopicError
+from slam.io.pointcloud2 import decode_laserscan, decode_pointcloud2
+from slam.types import Scan
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+LASERSCAN = "sensor_msgs/msg/LaserScan"
+DECODERS: dict[str, Callable[..., Scan]] = {
+    POINTCLOUD2: decode_pointcloud2,
+    LASERSCAN: decode_laserscan,
+}
+
+
+@dataclass(frozen=True)
+class TopicSummary:
+    """One topic of a bag: name, ROS2-style type name, message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+def is_bag_path(path: Path) -> bool:
+    """True for a ``.bag`` file, a ``.mcap`` file or a ROS2 bag directory."""
+    if path.is_file():
+        return path.suffix in (".bag", ".mcap", ".db3")
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file() or any(
+            p.suffix in (".db3", ".mcap") for p in path.iterdir()
+        )
+    return False
+
+
+def _bag_kind(path: Path) -> str:
+    if path.suffix == ".bag":
+        return "ROS1 bag"
+    if path.suffix == ".mcap" or any(path.glob("*.mcap")):
+        return "ROS2 mcap bag"
+    return "ROS2 sqlite3 bag"
+
+
+def _write_metadata(bagdir: Path, files: list[Path], storage: str) -> None:
+    """Write a rosbag2 metadata.yaml (version 5) for storage files that come without one."""
+    from rosbags.rosbag2 import storage_mcap, storage_sqlite3
+
+    cls = storage_mcap.McapReader if storage == "mcap" else storage_sqlite3.Sqlite3Reader
+    counts: dict[tuple[str, str], int] = {}
+    start, end = 2**63 - 1, 0
+    for f in files:
+        reader = cls(f)
+        reader.open()
+        try:
+            for c in reader.connections:
+                key = (c.topic, c.msgtype)
+                counts[key] = counts.get(key, 0) + int(c.msgcount)
+            if reader.metadata.message_count:
+                start = min(start, reader.metadata.start_time)
+                end = max(end, reader.metadata.end_time)
+        finally:
+            reader.close()
+    if end == 0:
+        start = 0
+    duration = max(end - start, 0)
+    topics = "".join(
+        f"    - topic_metadata:\n        name: {t}\n        type: {m}\n"
+        f"        serialization_format: cdr\n        offered_qos_profiles: ''\n"
+        f"      message_count: {n}\n"
+        for (t, m), n in counts.items()
+    )
+    names = "".join(f"    - {f.name}\n" for f in files)
+    (bagdir / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 5\n"
+        f"  storage_identifier: {storage}\n  relative_file_paths:\n{names}"
+        f"  duration:\n    nanoseconds: {duration}\n"
+        f"  starting_time:\n    nanoseconds_since_epoch: {start}\n"
+        f"  message_count: {sum(counts.values())}\n"
+        f"  topics_with_message_count:\n{topics if topics else '    []'}\n"
+        "  compression_format: ''\n  compression_mode: ''\n"
+    )
+
+
+@contextlib.contextmanager
+def _bag_dir(path: Path) -> Iterator[Path]:
+    """The path AnyReader can open: ROS2 storage files without metadata.yaml get a temporary one."""
+    if path.suffix == ".bag" or (path.is_dir() and (path / "metadata.yaml").is_file()):
+        yield path
+        return
+    if path.is_file() and (path.parent / "metadata.yaml").is_file():
+        yield path.parent
+        return
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) or sorted(path.glob("*.db3"))
+    if not files:
+        raise InputError(f"{path}: no .bag, .db3 or .mcap file found")
+    storage = "mcap" if files[0].suffix == ".mcap" else "sqlite3"
+    tmp = Path(tempfile.mkdtemp(prefix="slam_bag_"))
+    try:
+        for f in files:
+            (tmp / f.name).symlink_to(f.resolve())
+        _write_metadata(tmp, [tmp / f.name for f in files], storage)
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _reindex(path: Path) -> str:
+    return f"rosbag reindex {path}" if path.suffix == ".bag" else f"ros2 bag reindex {path}"
+
+
+@contextlib.contextmanager
+def open_reader(path: str | Path) -> Iterator[AnyReader]:
+    """An open AnyReader on ``path``; any failure to open becomes an InputError."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"bag not found: {path}")
+    try:
+        with _bag_dir(path) as bag:
+            default = Stores.ROS1_NOETIC if bag.suffix == ".bag" else Stores.ROS2_HUMBLE
+            reader = AnyReader([bag], default_typestore=get_typestore(default))
+            reader.open()
+    except InputError:
+        raise
+    except Exception as exc:  # rosbags raises many types (ReaderError, struct.error, apsw ...)
+        raise InputError(
+            f"cannot open {_bag_kind(path)} {path}: {exc or type(exc).__name__} "
+            f"(the file may be truncated or corrupt; try `{_reindex(path)}`)"
+        ) from exc
+    try:
+        yield reader
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+
+
+def list_topics(reader: AnyReader) -> list[TopicSummary]:
+    """Topics of an open reader, sorted by name."""
+    return [
+        TopicSummary(name, info.msgtype or "?", int(info.msgcount))
+        for name, info in sorted(reader.topics.items())
+    ]
+
+
+def format_topics(topics: list[TopicSummary]) -> str:
+    """A multi-line table of topics for error messages."""
+    if not topics:
+        return "  (no topics)"
+    width = max(len(t.name) for t in topics)
+    return "\n".join(f"  {t.name:<{width}}  {t.msgtype}  ({t.count} msgs)" for t in topics)
+
+
+def choose_topic(topics: list[TopicSummary], topic: str | None, where: str) -> TopicSummary:
+    """The topic to read (see module doc); TopicError lists the candidates otherwise."""
+    if topic is not None:
+        for t in topics:
+            if t.name == topic:
+                if t.msgtype not in DECODERS:
+                    raise TopicError(
+                        f"topic {topic} in {where} has type {t.msgtype}; supported types are "
+                        f"{sorted(DECODERS)}. Topics:\n{format_topics(topics)}"
+                    )
+                return t
+        raise TopicError(f"topic {topic} not found in {where}. Topics:\n{format_topics(topics)}")
+    for msgtype in (POINTCLOUD2, LASERSCAN):
+        found = [t for t in topics if t.msgtype == msgtype]
+        if len(found) == 1:
+            return found[0]
+        if len(found) > 1:
+            kind = msgtype.rsplit("/", 1)[-1]
+            raise TopicError(
+                f"{where} has {len(found)} {kind} topics; choose one with --topic. "
+                f"Topics:\n{format_topics(topics)}"
+            )
+    raise TopicError(
+        f"{where} has no sensor_msgs/PointCloud2 or LaserScan topic. Topics:\n"
+        f"{format_topics(topics)}"
+    )
+
+
+class BagSource:
+    """Scans of one PointCloud2 or LaserScan topic of a bag, in record order.
+
+    Iterating opens the bag anew, so a source can be iterated several times.
+    """
+
+    def __init__(self, path: str | Path, topic: str | None = None) -> None:
+        self.path = Path(path)
+        with open_reader(self.path) as reader:
+            if reader.message_count == 0:
+                raise InputError(f"{self.path} contains no messages")
+            self.topics = list_topics(reader)
+        chosen = choose_topic(self.topics, topic, str(self.path))
+        if chosen.count == 0:
+            raise InputError(f"topic {chosen.name} in {self.path} contains no messages")
+        self.topic: str | None = chosen.name
+        self.msgtype = chosen.msgtype
+        self._count = chosen.count
+        self.description = (
+            f"{_bag_kind(self.path)} {self.path}, topic {chosen.name} "
+            f"({chosen.msgtype.rsplit('/', 1)[-1]}, {chosen.count} msgs)"
+        )
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self) -> Iterator[Scan]:
+        decode = DECODERS[self.msgtype]
+        with open_reader(self.path) as reader:
+            conns = [c for c in reader.connections if c.topic == self.topic]
+            messages = reader.messages(connections=conns)
+            index = 0
+            while True:
+                try:
+                    item = next(messages, None)
+                except Exception as exc:
+                    raise self._bad(index, exc) from exc
+                if item is None:
+                    return
+                conn, _, raw = item
+                try:
+                    scan = decode(reader.deserialize(raw, conn.msgtype), index=index)
+                except Exception as exc:
+                    raise self._bad(index, exc) from exc
+                yield scan
+                index += 1
+
+    def _bad(self, index: int, exc: Exception) -> InputError:
+        return InputError(
+            f"{self.path}: cannot read message {index} on {self.topic}: "
+            f"{exc or type(exc).__name__} (the bag may be truncated or corrupt)"
+        )
+
+
+def first_message(reader: AnyReader, topic: str) -> Any | None:
+    """The first deserialised message on ``topic`` of an open reader (None if it has none)."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    for conn, _, raw in reader.messages(connections=conns):
+        return reader.deserialize(raw, conn.msgtype)
+    return None

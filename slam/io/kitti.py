@@ -1,0 +1,95 @@
+"""KITTI odometry sequences: ``velodyne/*.bin`` (float32 x, y, z, reflectance per point).
+
+Optional files next to ``velodyne/``: ``times.txt`` (one stamp in s per scan; otherwise
+0.1 s spacing), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground truth,
+T_cam0start_cam0 as KITTI rows). KITTI gives no ring or per-point time: both are None.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from slam.errors import InputError
+from slam.io.trajectory import read_kitti
+from slam.types import Scan
+
+SCAN_PERIOD_S = 0.1
+
+
+def is_kitti_dir(path: Path) -> bool:
+    """True for a directory holding a ``velodyne/`` folder of ``.bin`` files."""
+    return path.is_dir() and (path / "velodyne").is_dir() and any((path / "velodyne").glob("*.bin"))
+
+
+def read_bin(path: str | Path) -> np.ndarray:
+    """(N, 4) float32 x, y, z, reflectance of one KITTI ``.bin`` file."""
+    path = Path(path)
+    raw = np.fromfile(path, dtype="<f4")
+    if raw.size % 4:
+        raise InputError(f"{path}: {raw.size * 4} bytes is not a whole number of KITTI points")
+    return raw.reshape(-1, 4)
+
+
+def read_calib_tr(path: str | Path) -> np.ndarray | None:
+    """T_cam0_velo (4x4) from the ``Tr:`` line of a KITTI calib.txt, None if absent."""
+    for line in Path(path).read_text().splitlines():
+        key, _, values = line.partition(":")
+        if key.strip() in ("Tr", "Tr_velo_to_cam"):
+            T = np.eye(4)
+            T[:3, :] = np.array(values.split(), dtype=float).reshape(3, 4)
+            return T
+    return None
+
+
+class KittiSource:
+    """Scans of a KITTI odometry sequence folder, in file-name order."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not is_kitti_dir(self.path):
+            raise InputError(f"{self.path}: not a KITTI sequence (expected velodyne/*.bin inside)")
+        self.files = sorted((self.path / "velodyne").glob("*.bin"))
+        times = self.path / "times.txt"
+        if times.is_file():
+            self.stamps = np.loadtxt(times, ndmin=1).astype(np.float64)
+            if self.stamps.shape[0] != len(self.files):
+                raise InputError(
+                    f"{times} has {self.stamps.shape[0]} stamps for {len(self.files)} scans"
+                )
+        else:
+            self.stamps = np.arange(len(self.files)) * SCAN_PERIOD_S
+        self.topic: str | None = None
+        self.description = f"KITTI sequence {self.path} ({len(self.files)} scans)"
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self) -> Iterator[Scan]:
+        for i, f in enumerate(self.files):
+            pts = read_bin(f)
+            xyz = pts[:, :3].astype(np.float64)
+            keep = np.isfinite(xyz).all(axis=1)
+            yield Scan(
+                stamp=float(self.stamps[i]),
+                xyz=xyz[keep],
+                intensity=pts[keep, 3].copy(),
+                index=i,
+            )
+
+    def ground_truth(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth poses in the LiDAR frame (T_velo0_velo), None without poses.txt.
+
+        KITTI poses are camera poses; with calib.txt they are converted by Tr^-1 P Tr.
+        """
+        poses_file = self.path / "poses.txt"
+        if not poses_file.is_file():
+            return None
+        poses = read_kitti(poses_file)
+        calib = self.path / "calib.txt"
+        tr = read_calib_tr(calib) if calib.is_file() else None
+        if tr is None:
+            return poses
+        return np.linalg.inv(tr)[None] @ poses @ tr[None]

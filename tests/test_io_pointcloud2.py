@@ -1,0 +1,195 @@
+"""PointCloud2 / LaserScan encoding and decoding on in-memory messages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from slam.errors import InputError
+from slam.io.pointcloud2 import (
+    LAYOUTS,
+    decode_laserscan,
+    decode_pointcloud2,
+    encode_laserscan,
+    encode_pointcloud2,
+    make_header,
+    pointcloud2_time_field,
+)
+from slam.types import Scan
+
+TS2 = get_typestore(Stores.ROS2_HUMBLE)
+TS1 = get_typestore(Stores.ROS1_NOETIC)
+STAMP = 1_700_000_000.25
+
+
+def make_scan(n: int = 500, seed: int = 0) -> Scan:
+    rng = np.random.default_rng(seed)
+    time = np.sort(rng.uniform(0.0, 0.1, n))
+    time[0] = 0.0
+    return Scan(
+        stamp=STAMP,
+        xyz=rng.uniform(-50, 50, (n, 3)),
+        intensity=rng.uniform(0, 255, n).astype(np.float32),
+        ring=rng.integers(0, 16, n).astype(np.int16),
+        time=time,
+    )
+
+
+def raw_cloud(fields, records: np.ndarray, *, bigendian=False, height=1, row_pad=0, ts=TS2):
+    """A PointCloud2 from a structured array; ``fields`` = [(name, datatype)] in dtype order."""
+    pf = ts.types["sensor_msgs/msg/PointField"]
+    dt = records.dtype
+    width = records.size // height
+    rows = records.view(np.uint8).reshape(height, -1)
+    if row_pad:
+        rows = np.hstack([rows, np.full((height, row_pad), 0xAB, np.uint8)])
+    return ts.types["sensor_msgs/msg/PointCloud2"](
+        header=make_header(ts, STAMP, "lidar"),
+        height=height,
+        width=width,
+        fields=[pf(name=n, offset=dt.fields[n][1], datatype=d, count=1) for n, d in fields],
+        is_bigendian=bigendian,
+        point_step=dt.itemsize,
+        row_step=rows.shape[1],
+        data=rows.reshape(-1).copy(),
+        is_dense=False,
+    )
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+@pytest.mark.parametrize("ts", [TS1, TS2], ids=["ros1", "ros2"])
+def test_round_trip_every_layout(layout, ts):
+    scan = make_scan()
+    msg = encode_pointcloud2(scan, ts, layout=layout)
+    # through real serialisation, as in a bag
+    if ts is TS1:
+        msg = ts.deserialize_ros1(ts.serialize_ros1(msg, msg.__msgtype__), msg.__msgtype__)
+    else:
+        msg = ts.deserialize_cdr(ts.serialize_cdr(msg, msg.__msgtype__), msg.__msgtype__)
+    out = decode_pointcloud2(msg, index=7)
+    assert out.index == 7
+    assert out.stamp == pytest.approx(STAMP, abs=1e-9)
+    assert out.xyz.dtype == np.float64 and out.xyz.shape == (500, 3)
+    tol = 0 if layout == "xyz64" else 4e-6  # float32 relative precision at 50 m
+    np.testing.assert_allclose(out.xyz, scan.xyz, rtol=0, atol=tol)
+    if layout == "xyz64":
+        assert out.intensity is None and out.ring is None and out.time is None
+        return
+    np.testing.assert_allclose(out.intensity, scan.intensity, atol=1e-4)
+    assert out.intensity.dtype == np.float32
+    np.testing.assert_array_equal(out.ring, scan.ring)
+    assert out.ring.dtype == np.int16
+    # hesai stores absolute float64 seconds: 1.7e9 s leaves ~2.4e-7 s resolution
+    np.testing.assert_allclose(out.time, scan.time, atol=3e-7 if layout == "hesai" else 1e-8)
+    assert out.time.min() == 0.0
+
+
+def test_float64_fields_bigendian_and_row_padding():
+    dt = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity", "time"],
+            "formats": [">f8", ">f8", ">f8", ">f4", ">f8"],
+            "offsets": [0, 8, 16, 28, 32],
+            "itemsize": 48,
+        }
+    )
+    rec = np.zeros(12, dtype=dt)
+    rec["x"] = np.arange(12) * 1.123456789012
+    rec["y"] = -np.arange(12)
+    rec["z"] = 0.5
+    rec["intensity"] = np.arange(12) * 10
+    rec["time"] = np.linspace(-0.1, 0.0, 12)  # relative to an end-of-sweep stamp
+    fields = [("x", 8), ("y", 8), ("z", 8), ("intensity", 7), ("time", 8)]
+    msg = raw_cloud(fields, rec, bigendian=True, height=3, row_pad=5)
+    out = decode_pointcloud2(msg)
+    np.testing.assert_array_equal(out.xyz[:, 0], np.arange(12) * 1.123456789012)  # exact f64
+    np.testing.assert_array_equal(out.xyz[:, 1], -np.arange(12))
+    np.testing.assert_array_equal(out.intensity, np.arange(12) * 10)
+    np.testing.assert_allclose(out.time, np.linspace(0.0, 0.1, 12), atol=1e-15)
+    assert out.ring is None
+
+
+def test_ouster_t_nanoseconds_detected():
+    dt = np.dtype({"names": ["x", "y", "z", "t"], "formats": ["<f4"] * 3 + ["<u4"],
+                   "offsets": [0, 4, 8, 12], "itemsize": 16})  # fmt: skip
+    rec = np.zeros(4, dtype=dt)
+    rec["t"] = [0, 25_000_000, 50_000_000, 99_000_000]
+    msg = raw_cloud([("x", 7), ("y", 7), ("z", 7), ("t", 6)], rec)
+    out = decode_pointcloud2(msg)
+    np.testing.assert_allclose(out.time, [0.0, 0.025, 0.05, 0.099], atol=1e-12)
+    tf = pointcloud2_time_field(msg)
+    assert (tf.name, tf.unit, tf.absolute) == ("t", "ns", False)
+
+
+def test_absolute_timestamp_float64_seconds():
+    dt = np.dtype({"names": ["x", "y", "z", "timestamp", "channel"],
+                   "formats": ["<f4"] * 3 + ["<f8", "<u1"],
+                   "offsets": [0, 4, 8, 12, 20], "itemsize": 21})  # fmt: skip
+    rec = np.zeros(3, dtype=dt)
+    rec["timestamp"] = STAMP + np.array([0.05, 0.0, 0.1])
+    rec["channel"] = [3, 0, 31]
+    msg = raw_cloud([("x", 7), ("y", 7), ("z", 7), ("timestamp", 8), ("channel", 2)], rec)
+    out = decode_pointcloud2(msg)
+    np.testing.assert_allclose(out.time, [0.05, 0.0, 0.1], atol=1e-6)
+    np.testing.assert_array_equal(out.ring, [3, 0, 31])
+    tf = pointcloud2_time_field(msg)
+    assert (tf.unit, tf.absolute) == ("s", True)
+
+
+def test_absolute_float_nanoseconds_and_relative_microseconds():
+    dt = np.dtype({"names": ["x", "y", "z", "time"], "formats": ["<f4"] * 3 + ["<f8"]})
+    rec = np.zeros(3, dtype=dt)
+    rec["time"] = 1.7e18 + np.array([0.0, 5e7, 1e8])
+    out = decode_pointcloud2(raw_cloud([("x", 7), ("y", 7), ("z", 7), ("time", 8)], rec))
+    np.testing.assert_allclose(out.time, [0.0, 0.05, 0.1], atol=1e-6)
+    rec["time"] = [0.0, 50_000.0, 100_000.0]  # microseconds as float
+    out = decode_pointcloud2(raw_cloud([("x", 7), ("y", 7), ("z", 7), ("time", 8)], rec))
+    np.testing.assert_allclose(out.time, [0.0, 0.05, 0.1], atol=1e-9)
+
+
+def test_nan_points_dropped_consistently():
+    scan = make_scan(100)
+    scan.xyz[[3, 50, 99], 1] = np.nan
+    scan.xyz[10, 2] = np.inf
+    out = decode_pointcloud2(encode_pointcloud2(scan, TS2, layout="velodyne"))
+    keep = np.ones(100, bool)
+    keep[[3, 10, 50, 99]] = False
+    assert len(out) == 96
+    assert out.intensity.shape == out.ring.shape == out.time.shape == (96,)
+    np.testing.assert_allclose(out.xyz, scan.xyz[keep], atol=4e-6)
+    np.testing.assert_array_equal(out.ring, scan.ring[keep])
+    np.testing.assert_allclose(out.intensity, scan.intensity[keep], atol=1e-4)
+
+
+def test_all_nan_cloud_gives_empty_scan():
+    scan = Scan(stamp=1.0, xyz=np.full((5, 3), np.nan), time=np.zeros(5))
+    out = decode_pointcloud2(encode_pointcloud2(scan, TS2, layout="velodyne"))
+    assert len(out) == 0 and out.xyz.shape == (0, 3) and out.time.shape == (0,)
+
+
+def test_malformed_clouds_raise_input_error():
+    dt = np.dtype({"names": ["x", "y"], "formats": ["<f4", "<f4"]})
+    with pytest.raises(InputError, match=r"no field\(s\) \['z'\]"):
+        decode_pointcloud2(raw_cloud([("x", 7), ("y", 7)], np.zeros(3, dt)))
+    msg = encode_pointcloud2(make_scan(10), TS2)
+    msg.data = msg.data[:-30]
+    with pytest.raises(InputError, match="truncated"):
+        decode_pointcloud2(msg)
+
+
+def test_laserscan_decode():
+    ranges = np.array([1.0, 2.0, np.inf, 4.0, 0.05, 50.0])
+    msg = encode_laserscan(
+        TS2, 3.5, ranges, angle_min=-np.pi / 2, angle_increment=np.pi / 4, range_max=30.0,
+        range_min=0.1, time_increment=0.001, intensities=np.arange(6.0),
+    )  # fmt: skip
+    out = decode_laserscan(msg)
+    assert out.stamp == 3.5 and out.ring is None
+    angles = -np.pi / 2 + np.array([0, 1, 3]) * np.pi / 4
+    r = np.array([1.0, 2.0, 4.0])
+    np.testing.assert_allclose(out.xyz[:, 0], r * np.cos(angles), atol=1e-6)
+    np.testing.assert_allclose(out.xyz[:, 1], r * np.sin(angles), atol=1e-6)
+    np.testing.assert_array_equal(out.xyz[:, 2], 0.0)
+    np.testing.assert_allclose(out.time, [0.0, 0.001, 0.003], atol=1e-9)
+    np.testing.assert_array_equal(out.intensity, [0.0, 1.0, 3.0])
