@@ -1,0 +1,75 @@
+"""Motion compensation of a sweep under a constant-velocity (constant twist) model."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from slam.errors import InputError
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(M, 3) -> (M, 3, 3) cross-product matrices."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian V(phi) for (M, 3) rotation vectors (the 'V' of the SE(3) exp)."""
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
+    K = _skew(phi)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def se3_log(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Twist (rho, phi) of a 4x4 pose: T = exp([rho, phi]); phi a rotation vector (rad)."""
+    phi = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    rho = np.linalg.solve(_left_jacobian(phi[None])[0], T[:3, 3])
+    return rho, phi
+
+
+def interpolate_pose(T_start_end: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (M, 3, 3) and translations (M, 3) of exp(s * log T) for fractions s (M,)."""
+    rho, phi = se3_log(np.asarray(T_start_end, dtype=np.float64))
+    sphi = s[:, None] * phi[None, :]
+    R = Rotation.from_rotvec(sphi).as_matrix()
+    t = np.einsum("mij,mj->mi", _left_jacobian(sphi), s[:, None] * rho[None, :])
+    return R, t
+
+
+def deskew(
+    xyz: np.ndarray,
+    time: np.ndarray | None,
+    T_start_end: np.ndarray,
+    sweep_period: float,
+) -> np.ndarray:
+    """Move every point into the sensor frame at the sweep start (constant-velocity model).
+
+    time: (N,) seconds from sweep start, or None (then xyz is returned unchanged).
+    T_start_end: 4x4 pose of the sensor at sweep end in the start frame (e.g. the last
+    frame-to-frame motion). sweep_period: seconds (0.1 at 10 Hz). A point stamped t is mapped
+    by T(s) = exp(s * log T_start_end), s = t / sweep_period (SE(3) geodesic, i.e. constant
+    twist over the sweep), p_start = R(s) p + t(s).
+    """
+    if time is None:
+        return xyz
+    xyz = np.asarray(xyz, dtype=np.float64)
+    time = np.asarray(time, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or time.shape != (len(xyz),):
+        raise InputError(f"deskew needs xyz (N, 3) and time (N,), got {xyz.shape}, {time.shape}")
+    T = np.asarray(T_start_end, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"T_start_end must be 4x4, got {T.shape}")
+    if not sweep_period > 0:
+        raise InputError(f"sweep_period must be > 0 s, got {sweep_period}")
+    if len(xyz) == 0:
+        return xyz.copy()
+    R, t = interpolate_pose(T, time / sweep_period)
+    return np.einsum("nij,nj->ni", R, xyz) + t

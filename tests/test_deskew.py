@@ -1,0 +1,68 @@
+"""Constant-velocity deskew."""
+
+import numpy as np
+import pytest
+from scipy.linalg import expm, logm
+from scipy.spatial.transform import Rotation
+
+from slam.deskew import deskew, interpolate_pose, se3_log
+from slam.errors import InputError
+
+PERIOD = 0.1
+
+
+def pose(rotvec, t):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+# 1.5 m/s forward with 0.3 m/s sideways, yawing 60 deg/s and a little roll: over one 0.1 s sweep
+T_START_END = pose([0.01, 0.0, np.radians(6.0)], [0.15, 0.03, 0.005])
+
+
+def distorted_wall(seed=0):
+    """Points of the wall x = 8 (start frame) as seen by a sensor moving with a constant twist."""
+    rng = np.random.default_rng(seed)
+    y, z = rng.uniform(-6, 6, 800), rng.uniform(-1, 2, 800)
+    wall = np.c_[np.full(800, 8.0), y, z]
+    stamps = np.linspace(0, PERIOD, 40)  # firing blocks
+    block = np.sort(rng.integers(0, 40, 800))
+    time = stamps[block]
+    twist = np.real(logm(T_START_END))  # independent of the code under test
+    T = np.stack([expm(s * twist) for s in stamps / PERIOD])[block]
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    measured = np.einsum("nji,nj->ni", R, wall - t)  # p = R(s)^T (q - t(s))
+    return wall, measured, time
+
+
+def test_deskew_recovers_straight_wall():
+    wall, measured, time = distorted_wall()
+    assert np.abs(measured[:, 0] - 8.0).max() > 0.1  # the distortion is real
+    fixed = deskew(measured, time, T_START_END, PERIOD)
+    assert np.abs(fixed[:, 0] - 8.0).max() < 0.005
+    assert np.abs(fixed - wall).max() < 1e-6
+
+
+def test_interpolation_is_the_se3_geodesic():
+    R, t = interpolate_pose(T_START_END, np.array([0.0, 0.5, 1.0]))
+    assert np.allclose(R[0], np.eye(3)) and np.allclose(t[0], 0.0)
+    assert np.allclose(R[2], T_START_END[:3, :3]) and np.allclose(t[2], T_START_END[:3, 3])
+    half = np.eye(4)
+    half[:3, :3], half[:3, 3] = R[1], t[1]
+    assert np.allclose(half @ half, T_START_END, atol=1e-12)
+    rho, phi = se3_log(pose([0, 0, 0], [1.0, 2.0, 3.0]))
+    assert np.allclose(rho, [1, 2, 3]) and np.allclose(phi, 0)
+
+
+def test_deskew_passthrough_and_errors():
+    xyz = np.ones((5, 3))
+    assert deskew(xyz, None, T_START_END, PERIOD) is xyz
+    assert np.allclose(deskew(xyz, np.zeros(5), T_START_END, PERIOD), xyz)
+    with pytest.raises(InputError):
+        deskew(xyz, np.zeros(4), T_START_END, PERIOD)
+    with pytest.raises(InputError):
+        deskew(xyz, np.zeros(5), np.eye(3), PERIOD)
+    with pytest.raises(InputError):
+        deskew(xyz, np.zeros(5), T_START_END, 0.0)
