@@ -117,7 +117,7 @@ def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") 
     result = evaluate(out / "trajectory.tum", gt)
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
     loops = _loop_positions(pipeline) if pipeline is not None else None
-    images = plot_all(result, out / "plots", loops=loops)
+    images = plot_all(result, out / "plots", loop_positions=loops)
     table = format_table(ape_table({title: result.ape_trans}), "markdown")
     metrics = (
         json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
