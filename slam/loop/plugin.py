@@ -1,0 +1,321 @@
+"""Scan Context loop closure as a factor plugin (two layers: descriptor proposes, GICP verifies).
+
+On each keyframe: Scan Context of ``kf.cloud`` -> ring-key KD-tree candidates older than
+the exclusion window (plus, optionally, keyframes within ``proximity_radius`` m of the
+current estimate) -> column-shift distance -> GICP verification of the best candidates
+-> ``BetweenFactorPose3(key(candidate), key(current), T_candidate_current)`` with a robust
+noise model. Every verified candidate is recorded in ``events`` (``write_csv`` -> loops.csv).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import small_gicp
+
+from slam.factors import FactorConfig, GraphView, information_noise, key, pose3, robust_noise
+from slam.loop.scan_context import ScanContextParams, scan_context
+from slam.loop.search import Candidate, ScanContextDatabase, SearchParams
+from slam.loop.verify import VerifyParams, verify, wrap_angle, yaw_matrix, yaw_of
+from slam.types import Keyframe, LoopConstraint
+
+log = logging.getLogger(__name__)
+
+CSV_COLUMNS = (
+    "source", "target", "stamp_source", "stamp_target", "score", "fitness", "yaw_deg",
+    "accepted", "reason",
+)  # fmt: skip
+
+
+class LoopClosurePlugin:
+    """Loop closure factors from Scan Context + GICP (LeGO-LOAM-LPB's two-layer scheme)."""
+
+    is_loop = True
+
+    @dataclass
+    class Config(FactorConfig):
+        """Descriptor: rings, sectors, max_radius (m), lidar_height (m, added to z).
+        Search: exclude_recent (keyframes) / exclude_seconds (s) never matched, top_k ring-key
+        neighbours, sc_threshold on the Scan Context distance, rebuild_every (KD-tree),
+        shift_window (0 = all column shifts), proximity_radius (m, 0 = off).
+        Verification: verify_voxel (m, also the stored clouds' voxel), neighbours (+-n
+        keyframes merged into each local cloud), max_fitness (m), min_overlap (0-1),
+        inlier_distance (m), yaw_tolerance_deg, max_verify (candidates tried per keyframe),
+        min_keyframe_gap (keyframes after an accepted loop before the next may be accepted),
+        consistency_base (m) / consistency_ratio: a registered loop may move the current
+        keyframe away from its estimate relative to the candidate by at most base + ratio x
+        distance travelled between the two, and turn it by at most consistency_yaw_deg
+        (odometry-consistency gate against perceptual aliasing: look-alike rooms,
+        repetitive corridors, corridors seen backwards); consistency_ratio < 0 disables it.
+        min_sigma_trans (m) / min_sigma_rot_deg: sigma floor of the loop noise."""
+
+        robust: str = "cauchy"
+        robust_param: float = 1.0
+        rings: int = 20
+        sectors: int = 60
+        max_radius: float = 80.0
+        lidar_height: float = 2.0
+        exclude_recent: int = 30
+        exclude_seconds: float = 0.0
+        top_k: int = 10
+        sc_threshold: float = 0.25
+        rebuild_every: int = 10
+        shift_window: int = 0
+        proximity_radius: float = 0.0
+        verify_voxel: float = 0.25
+        neighbours: int = 0
+        max_correspondence: float = 1.0
+        coarse_voxel: float = 1.0
+        coarse_max_correspondence: float = 4.0
+        inlier_distance: float = 0.3
+        max_fitness: float = 0.15
+        min_overlap: float = 0.6
+        yaw_tolerance_deg: float = 15.0
+        max_verify: int = 1
+        min_keyframe_gap: int = 0
+        consistency_base: float = 3.0
+        consistency_ratio: float = 0.1
+        consistency_yaw_deg: float = 45.0
+        min_sigma_trans: float = 0.01
+        min_sigma_rot_deg: float = 0.1
+        max_sigma_ratio: float = 100.0
+
+        def __post_init__(self) -> None:
+            super().__post_init__()
+            for name in ("rings", "sectors", "top_k", "rebuild_every", "max_verify"):
+                if getattr(self, name) < 1:
+                    raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+            if self.exclude_recent < 1:
+                raise ValueError(f"exclude_recent must be >= 1, got {self.exclude_recent}")
+            for name in ("max_radius", "verify_voxel", "sc_threshold", "inlier_distance"):
+                if not getattr(self, name) > 0:
+                    raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+            if not 0.0 <= self.min_overlap <= 1.0:
+                raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
+
+    def __init__(self, config: Config | None = None):
+        self.config = cfg = config or self.Config()
+        self.sc_params = ScanContextParams(cfg.rings, cfg.sectors, cfg.max_radius, cfg.lidar_height)
+        self.db = ScanContextDatabase(
+            cfg.rings,
+            cfg.sectors,
+            SearchParams(
+                exclude_recent=cfg.exclude_recent,
+                exclude_seconds=cfg.exclude_seconds,
+                top_k=cfg.top_k,
+                threshold=cfg.sc_threshold,
+                rebuild_every=cfg.rebuild_every,
+                shift_window=cfg.shift_window,
+            ),
+        )
+        self.verify_params = VerifyParams(
+            voxel=cfg.verify_voxel,
+            max_correspondence=cfg.max_correspondence,
+            coarse_voxel=cfg.coarse_voxel,
+            coarse_max_correspondence=cfg.coarse_max_correspondence,
+            inlier_distance=cfg.inlier_distance,
+            max_fitness=cfg.max_fitness,
+            min_overlap=cfg.min_overlap,
+            yaw_tolerance_deg=cfg.yaw_tolerance_deg,
+            min_sigma_trans=cfg.min_sigma_trans,
+            min_sigma_rot_deg=cfg.min_sigma_rot_deg,
+            max_sigma_ratio=cfg.max_sigma_ratio,
+        )
+        self.events: list[LoopConstraint] = []
+        self._event_meta: list[tuple[float, float, float]] = []  # stamps and yaw per event
+        self._clouds: dict[int, np.ndarray] = {}  # kf id -> voxelised sensor-frame cloud (f32)
+        self._row_of: dict[int, int] = {}
+        self._travel: dict[int, float] = {}  # kf id -> odometric distance since the start (m)
+        self._last_accepted = -(10**9)
+        self.detect_ms: list[float] = []
+        self.verify_ms: list[float] = []
+
+    # ------------------------------------------------------------------ plugin interface
+    def on_keyframe(self, kf: Keyframe, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
+        """Detect and verify a loop for ``kf``; returns zero or one loop factor."""
+        cfg = self.config
+        if not cfg.enabled:
+            return []
+        t0 = time.perf_counter()
+        desc = scan_context(kf.cloud, self.sc_params)
+        self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
+        self._clouds[kf.id] = self._downsample(kf.cloud)
+        step = float(np.linalg.norm(np.asarray(kf.relative)[:3, 3])) if kf.id > 0 else 0.0
+        self._travel[kf.id] = self._travel.get(kf.id - 1, 0.0) + step
+        candidates = self._candidates(kf, desc, graph)
+        self.detect_ms.append(1e3 * (time.perf_counter() - t0))
+        if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
+            return []
+        t1 = time.perf_counter()
+        try:
+            return self._verify_candidates(kf, candidates, graph)
+        finally:
+            self.verify_ms.append(1e3 * (time.perf_counter() - t1))
+
+    # ------------------------------------------------------------------ steps
+    def _downsample(self, cloud: np.ndarray) -> np.ndarray:
+        pts = np.ascontiguousarray(np.asarray(cloud, dtype=np.float64)[:, :3])
+        if len(pts) == 0:
+            return np.zeros((0, 3), dtype=np.float32)
+        ds = small_gicp.voxelgrid_sampling(pts, self.config.verify_voxel)
+        return np.asarray(ds.points())[:, :3].astype(np.float32)
+
+    def _candidates(self, kf: Keyframe, desc: np.ndarray, graph: GraphView) -> list[Candidate]:
+        """Scan Context candidates below the threshold, then proximity candidates (if on)."""
+        cfg = self.config
+        out = [c for c in self.db.query(desc, kf.stamp) if c.distance < cfg.sc_threshold]
+        if cfg.proximity_radius > 0.0:
+            self._refresh_positions(kf, graph)
+            T_w_cur = self._estimate(graph, kf)
+            seen = {c.row for c in out}
+            rows = [r for r in self.db.near(T_w_cur[:3, 3], cfg.proximity_radius, kf.stamp)]
+            rows = [r for r in rows if r not in seen]
+            for c in self.db.score(desc, np.asarray(rows, dtype=np.intp)):
+                T_rel = np.linalg.inv(self._estimate_id(graph, c.kf_id)) @ T_w_cur
+                c.yaw = yaw_of(T_rel)  # the estimate, not the descriptor, guides these
+                c.shift = -1
+                out.append(c)
+        return out
+
+    def _refresh_positions(self, kf: Keyframe, graph: GraphView) -> None:
+        """Keep proximity positions current: all rows every rebuild_every keyframes."""
+        n = len(self.db)
+        if (n - 1) % self.config.rebuild_every == 0:
+            ids = [self.db.kf_id(r) for r in range(n)]
+            pos = np.array([self._estimate_id(graph, i)[:3, 3] for i in ids])
+            self.db.set_positions(np.arange(n), pos)
+        else:
+            self.db.set_positions(np.array([n - 1]), self._estimate(graph, kf)[None, :3, 3])
+
+    def _estimate_id(self, graph: GraphView, kf_id: int) -> np.ndarray:
+        return np.asarray(graph.estimate(kf_id), dtype=np.float64)
+
+    def _estimate(self, graph: GraphView, kf: Keyframe) -> np.ndarray:
+        """T_world_sensor of the current keyframe: the back end's estimate if it has one,
+        else the previous keyframe's estimate composed with the odometry relative motion."""
+        try:
+            return self._estimate_id(graph, kf.id)
+        except (KeyError, IndexError, RuntimeError):
+            if kf.id == 0:
+                return np.asarray(kf.pose_odom, dtype=np.float64)
+            return self._estimate_id(graph, kf.id - 1) @ np.asarray(kf.relative, dtype=float)
+
+    def _local_cloud(self, graph: GraphView, kf_id: int, T_w_center: np.ndarray) -> np.ndarray:
+        """The keyframe's stored cloud merged with its +-neighbours (those already seen),
+        transformed into its sensor frame by the current estimates."""
+        n = self.config.neighbours
+        parts = [self._clouds[kf_id].astype(np.float64)]
+        if n > 0:
+            T_c_w = np.linalg.inv(T_w_center)
+            for j in range(kf_id - n, kf_id + n + 1):
+                if j == kf_id or j not in self._clouds:
+                    continue
+                T = T_c_w @ self._estimate_id(graph, j)
+                parts.append(self._clouds[j].astype(np.float64) @ T[:3, :3].T + T[:3, 3])
+        return np.concatenate(parts, axis=0)
+
+    def _verify_candidates(
+        self, kf: Keyframe, candidates: list[Candidate], graph: GraphView
+    ) -> list[gtsam.BetweenFactorPose3]:
+        cfg = self.config
+        T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
+        source = self._local_cloud(graph, kf.id, T_w_cur)
+        for cand in candidates[: cfg.max_verify]:
+            if cand.shift < 0:  # proximity candidate: the estimate is the initial guess
+                init = np.linalg.inv(self._estimate_id(graph, cand.kf_id)) @ self._estimate(
+                    graph, kf
+                )
+            else:
+                init = yaw_matrix(cand.yaw)
+            T_w_cand = self._estimate_id(graph, cand.kf_id) if cfg.neighbours > 0 else np.eye(4)
+            target = self._local_cloud(graph, cand.kf_id, T_w_cand)
+            res = verify(target, source, init, self.verify_params)
+            if res.accepted:
+                res.reason = self._inconsistency(graph, kf, cand.kf_id, res.T_target_source)
+                res.accepted = not res.reason
+            self.events.append(
+                LoopConstraint(
+                    source=kf.id,
+                    target=cand.kf_id,
+                    T_target_source=res.T_target_source,
+                    score=cand.distance,
+                    fitness=res.fitness,
+                    accepted=res.accepted,
+                    info=res.info,
+                    reason=res.reason,
+                )
+            )
+            self._event_meta.append((kf.stamp, self.db.stamp(cand.row), res.yaw_deg))
+            if not res.accepted:
+                log.debug("loop %d -> %d rejected: %s", kf.id, cand.kf_id, res.reason)
+                continue
+            log.info(
+                "loop %d -> %d accepted: sc %.3f fitness %.3f m overlap %.2f yaw %.1f deg",
+                kf.id, cand.kf_id, cand.distance, res.fitness, res.overlap, res.yaw_deg,
+            )  # fmt: skip
+            self._last_accepted = kf.id
+            noise = robust_noise(information_noise(res.info), cfg.robust, cfg.robust_param)
+            return [
+                gtsam.BetweenFactorPose3(
+                    key(cand.kf_id), key(kf.id), pose3(res.T_target_source), noise
+                )
+            ]
+        return []
+
+    def _inconsistency(
+        self, graph: GraphView, kf: Keyframe, cand_id: int, T_cand_cur: np.ndarray
+    ) -> str:
+        """Why the loop contradicts the odometry (empty string when it does not)."""
+        cfg = self.config
+        if cfg.consistency_ratio < 0:
+            return ""
+        T_est = np.linalg.inv(self._estimate_id(graph, cand_id)) @ self._estimate(graph, kf)
+        jump = float(np.linalg.norm(T_est[:3, 3] - T_cand_cur[:3, 3]))
+        travelled = abs(self._travel.get(kf.id, 0.0) - self._travel.get(cand_id, 0.0))
+        allowed = cfg.consistency_base + cfg.consistency_ratio * travelled
+        if jump > allowed:
+            return (
+                f"inconsistent with odometry: moves {jump:.1f} m from the estimate "
+                f"(allowed {allowed:.1f} m after {travelled:.0f} m)"
+            )
+        turn = abs(np.degrees(wrap_angle(yaw_of(T_cand_cur) - yaw_of(T_est))))
+        if turn > cfg.consistency_yaw_deg:
+            return (
+                f"inconsistent with odometry: turns {turn:.0f} deg from the estimate "
+                f"(allowed {cfg.consistency_yaw_deg:.0f} deg)"
+            )
+        return ""
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def accepted(self) -> list[LoopConstraint]:
+        return [e for e in self.events if e.accepted]
+
+    def stats(self) -> dict[str, float]:
+        """Counts and mean timings (ms) for metrics.json."""
+        return {
+            "keyframes": len(self.db),
+            "verified": len(self.events),
+            "accepted": len(self.accepted),
+            "detect_ms_mean": float(np.mean(self.detect_ms)) if self.detect_ms else 0.0,
+            "verify_ms_mean": float(np.mean(self.verify_ms)) if self.verify_ms else 0.0,
+        }
+
+    def write_csv(self, path: str | Path) -> None:
+        """loops.csv: one row per verified candidate (accepted or rejected with a reason)."""
+        with Path(path).open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(CSV_COLUMNS)
+            for e, (st_s, st_t, yaw) in zip(self.events, self._event_meta, strict=True):
+                w.writerow(
+                    [
+                        e.source, e.target, f"{st_s:.9f}", f"{st_t:.9f}", f"{e.score:.6f}",
+                        f"{e.fitness:.6f}", f"{yaw:.3f}", int(e.accepted), e.reason,
+                    ]
+                )  # fmt: skip

@@ -1,0 +1,336 @@
+"""Loop closure plugin and GICP verification (slam/loop/plugin.py, slam/loop/verify.py).
+
+Synthetic indoor scenes are ray-cast with open3d: a hall with a core block and clutter
+(driven around once, odometry drifting), and a corridor with two identical rooms.
+"""
+
+from __future__ import annotations
+
+import csv
+
+import gtsam
+import numpy as np
+import open3d as o3d
+import pytest
+import small_gicp
+
+from slam.errors import ConfigError
+from slam.factors import GraphView, key
+from slam.loop.plugin import CSV_COLUMNS, LoopClosurePlugin
+from slam.loop.verify import VerifyParams, scaled_information, verify, yaw_matrix
+from slam.plugins import instantiate
+from slam.types import Keyframe
+
+# --------------------------------------------------------------------------- synthetic scenes
+
+
+def _box(lo, hi):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    mesh = o3d.geometry.TriangleMesh.create_box(*(hi - lo))
+    mesh.translate(lo)
+    return o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+
+
+def _scene(boxes):
+    scene = o3d.t.geometry.RaycastingScene()
+    for lo, hi in boxes:
+        scene.add_triangles(_box(lo, hi))
+    return scene
+
+
+def _pose(x, y, yaw, z=1.0):
+    T = yaw_matrix(yaw)
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def _rays(beams=16, columns=900):
+    el = np.radians(np.linspace(-15.0, 15.0, beams))
+    az = np.linspace(0, 2 * np.pi, columns, endpoint=False)
+    E, A = np.meshgrid(el, az, indexing="ij")
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+
+
+def _scan(scene, T_world_sensor, rng, max_range=60.0):
+    rays = _rays()
+    d_world = rays @ T_world_sensor[:3, :3].T
+    origin = np.broadcast_to(T_world_sensor[:3, 3], d_world.shape)
+    hit = scene.cast_rays(o3d.core.Tensor(np.hstack([origin, d_world]).astype(np.float32)))
+    r = hit["t_hit"].numpy().astype(np.float64)
+    ok = np.isfinite(r) & (r < max_range)
+    return rays[ok] * (r[ok] + rng.normal(0.0, 0.01, ok.sum()))[:, None]
+
+
+def _polyline(points, step):
+    out = []
+    for a, b in zip(points[:-1], points[1:], strict=True):
+        d = np.subtract(b, a)
+        n = max(int(np.linalg.norm(d) // step), 1)
+        out += [_pose(*(a + d * i / n), np.arctan2(d[1], d[0])) for i in range(n)]
+    return out
+
+
+HALL_W, HALL_H, HALL_M = 50.0, 34.0, 12.0
+HALL_PATH = np.array([[12, 6], [44, 6], [44, 28], [6, 28], [6, 6.5], [20, 6.5]], float)
+
+
+def _hall_boxes(seed=0):
+    """50 x 34 m hall around a core block, walls of random-height segments, 140 pillars and
+    cabinets in the 12 m walkway, none within 1.2 m of the driving path."""
+    rng = np.random.default_rng(seed)
+    W, H, M, t = HALL_W, HALL_H, HALL_M, 0.2
+    boxes = [((-5, -5, -0.1), (W + 5, H + 5, 0.0))]
+
+    def wall(x0, y0, x1, y1, hmin, hmax):
+        length = max(abs(x1 - x0), abs(y1 - y0))
+        cuts = np.sort(np.concatenate([[0, length], rng.uniform(0, length, int(length // 3))]))
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            h = rng.uniform(hmin, hmax)
+            if y0 == y1:
+                boxes.append(((min(x0, x1) + a, y0 - t, 0), (min(x0, x1) + b, y0, h)))
+            else:
+                boxes.append(((x0, min(y0, y1) + a, 0), (x0 + t, min(y0, y1) + b, h)))
+
+    wall(0, 0, W, 0, 2.0, 6.0)
+    wall(0, H + t, W, H + t, 2.0, 6.0)
+    wall(-t, 0, -t, H, 2.0, 6.0)
+    wall(W, 0, W, H, 2.0, 6.0)
+    wall(M, M + t, W - M, M + t, 1.5, 5.0)
+    wall(M, H - M, W - M, H - M, 1.5, 5.0)
+    wall(M, M, M, H - M, 1.5, 5.0)
+    wall(W - M - t, M, W - M - t, H - M, 1.5, 5.0)
+    a, b = HALL_PATH[:-1], HALL_PATH[1:]
+    n = 0
+    while n < 140:
+        x, y = rng.uniform(0.5, W - 0.5), rng.uniform(0.5, H - 0.5)
+        if M - 0.5 < x < W - M + 0.5 and M - 0.5 < y < H - M + 0.5:
+            continue
+        u = np.clip(np.einsum("ij,ij->i", [x, y] - a, b - a) / np.sum((b - a) ** 2, 1), 0, 1)
+        if np.min(np.linalg.norm(a + u[:, None] * (b - a) - [x, y], axis=1)) < 1.2:
+            continue
+        s = rng.uniform(0.3, 1.5, 2)
+        boxes.append(((x, y, 0), (x + s[0], y + s[1], rng.uniform(0.5, 4.0))))
+        n += 1
+    return boxes
+
+
+def _rooms_boxes():
+    """Corridor (y 0..3) with two identical 8 x 8 m rooms to its north (x 0..8, 10..18; doors
+    at x = 4 and 14); room B alone has a shelf and a column."""
+    rng = np.random.default_rng(3)
+    boxes = [((-10, -10, -0.1), (40, 20, 0.0))]
+    x = -8.0
+    while x < 35:
+        w = rng.uniform(1.5, 4.0)
+        boxes.append(((x, -0.2, 0), (x + w, 0, rng.uniform(2.5, 3.5))))
+        x += w
+    boxes += [((-8.2, -0.2, 0), (-8, 3, 3)), ((35, -0.2, 0), (35.2, 3, 3))]
+    edges = [-8.0, 3.4, 4.6, 13.4, 14.6, 35.0]
+    for lo, hi in zip(edges[::2], edges[1::2], strict=True):
+        boxes.append(((lo, 3, 0), (hi, 3.2, 3)))
+    furniture = [
+        ((1.5, 5.0, 0), (3.0, 5.8, 0.75)),
+        ((6.5, 9.5, 0), (7.5, 10.0, 2.0)),
+        ((1.0, 9.0, 0), (1.4, 9.4, 3.0)),
+        ((6.0, 4.0, 0), (7.6, 4.6, 1.2)),
+    ]
+    for x0 in (0.0, 10.0):
+        boxes += [((x0 - 0.2, 3, 0), (x0, 11.2, 3)), ((x0 + 8, 3, 0), (x0 + 8.2, 11.2, 3))]
+        boxes.append(((x0, 11, 0), (x0 + 8, 11.2, 3)))
+        boxes += [(np.add(lo, (x0, 0, 0)), np.add(hi, (x0, 0, 0))) for lo, hi in furniture]
+    boxes += [((12.5, 10.3, 0), (15.5, 10.9, 1.8)), ((10.5, 6.5, 0), (11.1, 7.1, 2.5))]
+    boxes += [((xx, 0, 0), (xx + 0.5, 0.5, 2.2)) for xx in (-6.0, 22.0, 27.0, 31.0)]
+    return boxes
+
+
+def _drifting_odometry(truth):
+    """Odometry that over-estimates each step by 2 %, slips 1 cm sideways, 2 mm up and
+    turns 0.3 deg too far per keyframe."""
+    odo = [truth[0]]
+    drift = _pose(0.0, 0.01, np.radians(0.3), 0.002)
+    for prev, cur in zip(truth[:-1], truth[1:], strict=True):
+        rel = np.linalg.inv(prev) @ cur
+        step = drift.copy()
+        step[0, 3] = 0.02 * rel[0, 3]
+        odo.append(odo[-1] @ rel @ step)
+    return odo
+
+
+def _run(plugin, truth, odo, scene, seed=0):
+    """Feed keyframes (clouds at the true poses, estimates = drifting odometry) to the plugin;
+    returns the factors with the current keyframe id."""
+    rng = np.random.default_rng(seed)
+    kfs: list[Keyframe] = []
+    view = GraphView(kfs, lambda i: odo[i])
+    out = []
+    for i, T in enumerate(odo):
+        rel = np.eye(4) if i == 0 else np.linalg.inv(odo[i - 1]) @ T
+        kf = Keyframe(i, 0.5 * i, 3 * i, T, rel, np.eye(6), _scan(scene, truth[i], rng))
+        kfs.append(kf)
+        out += [(i, f) for f in plugin.on_keyframe(kf, view)]
+    return out
+
+
+def _err(T_est, T_true):
+    E = np.linalg.inv(T_true) @ T_est
+    ang = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(E[:3, 3])), float(ang)
+
+
+INDOOR = dict(max_radius=40.0, lidar_height=1.0)
+
+
+@pytest.fixture(scope="module")
+def hall_run():
+    truth = _polyline(HALL_PATH, 2.0)
+    odo = _drifting_odometry(truth)
+    plugin = LoopClosurePlugin(LoopClosurePlugin.Config(**INDOOR))
+    factors = _run(plugin, truth, odo, _scene(_hall_boxes()))
+    return plugin, factors, truth, odo
+
+
+@pytest.fixture(scope="module")
+def rooms_run():
+    # room A centre -> corridor -> room B centre -> back -> room A (0.5 m short of the start)
+    path = np.array([[4, 7.5], [4, 1.5], [14, 1.5], [14, 7.5], [14, 1.5], [4, 1.5], [4, 7.0]])
+    truth = _polyline(path, 1.0) + [_pose(4.0, 7.0, np.pi / 2)]
+    odo = _drifting_odometry(truth)
+    cfg = LoopClosurePlugin.Config(max_radius=20.0, lidar_height=1.0, exclude_recent=5)
+    plugin = LoopClosurePlugin(cfg)
+    factors = _run(plugin, truth, odo, _scene(_rooms_boxes()), seed=1)
+    return plugin, factors, truth, odo
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def test_true_revisit_found_verified_and_accurate(hall_run):
+    plugin, factors, truth, odo = hall_run
+    n = len(truth)
+    assert n == 63
+    # the drift is real: at the end the odometry is metres off
+    assert np.linalg.norm(odo[-1][:3, 3] - truth[-1][:3, 3]) > 3.0
+    assert len(factors) >= 3
+    for cur, f in factors:
+        assert isinstance(f, gtsam.BetweenFactorPose3)
+        cand = gtsam.Symbol(f.keys()[0]).index()
+        assert f.keys()[1] == key(cur)
+        assert cur >= n - 5 and cand <= 4  # the start, revisited at the end
+        t_err, r_err = _err(f.measured().matrix(), np.linalg.inv(truth[cand]) @ truth[cur])
+        assert t_err < 0.05 and r_err < 0.5, (cand, cur, t_err, r_err)
+        assert isinstance(f.noiseModel(), gtsam.noiseModel.Robust)
+    assert all(e.accepted for e in plugin.events)  # no look-alike got as far as a false accept
+    assert plugin.stats()["accepted"] == len(factors)
+
+
+def test_loop_information_is_scaled_to_plausible_sigmas(hall_run):
+    plugin, *_ = hall_run
+    for e in plugin.accepted:
+        sig = np.sqrt(np.diag(np.linalg.inv(e.info)))
+        assert np.all(sig[:3] >= np.radians(0.1) * 0.999) and np.all(sig[3:] >= 0.01 * 0.999)
+        assert np.all(sig[:3] < np.radians(10.0)) and np.all(sig[3:] < 1.0)
+
+
+def test_look_alike_room_rejected_true_return_accepted(rooms_run):
+    plugin, factors, truth, odo = rooms_run
+    # keyframes 16-24 stand in the doorway / centre of room B, a copy of room A 10 m east
+    look_alike = [e for e in plugin.events if 16 <= e.source <= 24 and e.target <= 6]
+    assert look_alike, "the descriptor should propose room A for room B"
+    for e in look_alike:
+        assert not e.accepted
+        assert e.reason.startswith("inconsistent with odometry")
+    # every accepted loop is a true revisit (same place within 1.5 m), accurate to 5 cm/0.5 deg
+    assert factors
+    for cur, f in factors:
+        cand = gtsam.Symbol(f.keys()[0]).index()
+        assert np.linalg.norm(truth[cand][:2, 3] - truth[cur][:2, 3]) < 1.5
+        t_err, r_err = _err(f.measured().matrix(), np.linalg.inv(truth[cand]) @ truth[cur])
+        assert t_err < 0.05 and r_err < 0.5, (cand, cur, t_err, r_err)
+    back_in_a = [c for c, f in factors if c == len(truth) - 1]
+    assert back_in_a
+
+
+def test_loops_csv_lists_every_verified_candidate(rooms_run, tmp_path):
+    plugin, *_ = rooms_run
+    path = tmp_path / "loops.csv"
+    plugin.write_csv(path)
+    rows = list(csv.DictReader(path.open()))
+    assert tuple(rows[0].keys()) == CSV_COLUMNS
+    assert len(rows) == len(plugin.events)
+    accepted = [r for r in rows if r["accepted"] == "1"]
+    assert len(accepted) == len(plugin.accepted)
+    assert all(r["reason"] == "" for r in accepted)
+    assert all(r["reason"] for r in rows if r["accepted"] == "0")
+    first = rows[0]
+    assert float(first["stamp_source"]) == pytest.approx(0.5 * int(first["source"]))
+    assert float(first["stamp_target"]) == pytest.approx(0.5 * int(first["target"]))
+
+
+# --------------------------------------------------------------------------- verification
+
+
+def test_small_gicp_hessian_is_rotation_first():
+    """Far from the origin the rotation block of H grows with range^2; translation does not."""
+    rng = np.random.default_rng(0)
+    boxes = [((x, y, 0), (x + 2, y + 2, 3)) for x, y in rng.uniform(-20, 20, (15, 2))]
+    pts = _scan(_scene(boxes + [((-30, -30, -0.1), (30, 30, 0))]), _pose(0, 0, 0), rng)
+    blocks = []
+    for offset in (0.0, 100.0):
+        shifted = pts + [offset, 0.0, 0.0]
+        res = small_gicp.align(shifted, shifted, init_T_target_source=np.eye(4))
+        H = np.asarray(res.H)
+        blocks.append((np.trace(H[:3, :3]), np.trace(H[3:, 3:])))
+    (r0, t0), (r1, t1) = blocks
+    assert r1 / r0 > 50.0  # rotation block (first) scales with the squared distance
+    assert 0.5 < t1 / t0 < 2.0  # translation block (last) does not
+
+
+def test_scaled_information_floors_and_caps_sigmas():
+    rng = np.random.default_rng(0)
+    V, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    H = 1e9 * (V * [1.0, 0.5, 0.3, 0.2, 0.1, 1e-12]) @ V.T  # degenerate in one direction
+    info = scaled_information(H, 0.01, np.radians(0.1), 100.0)
+    floor = np.array([np.radians(0.1)] * 3 + [0.01] * 3)
+    cov_w = np.linalg.inv(info) / floor[:, None] / floor[None, :]  # whitened covariance
+    w = np.linalg.eigvalsh(cov_w)
+    assert w.min() == pytest.approx(1.0)  # best direction: exactly the floor sigma
+    assert w.max() == pytest.approx(100.0**2)  # degenerate direction: capped at 100x floor
+    assert np.all(np.linalg.eigvalsh(info) > 0)
+
+
+def test_verify_rejects_wrong_yaw_and_poor_overlap():
+    rng = np.random.default_rng(2)
+    scene = _scene(_hall_boxes())
+    a = _scan(scene, _pose(20, 6, 0.0), rng)
+    b = _scan(scene, _pose(21, 6.3, np.radians(20)), rng)
+    T_true = np.linalg.inv(_pose(20, 6, 0.0)) @ _pose(21, 6.3, np.radians(20))
+    ok = verify(a, b, yaw_matrix(np.radians(18)))
+    assert ok.accepted and ok.overlap > 0.8
+    assert _err(ok.T_target_source, T_true)[0] < 0.05
+    # a guess 40 deg off: the registration may still converge, but not to the guessed yaw
+    params = VerifyParams(yaw_tolerance_deg=10.0)
+    off = verify(a, b, yaw_matrix(np.radians(-20)), params)
+    assert not off.accepted
+    other = _scan(scene, _pose(44, 20, np.pi / 2), rng)  # another side of the hall
+    far = verify(a, other, yaw_matrix(0.0))
+    assert not far.accepted and far.overlap < 0.6
+
+
+# --------------------------------------------------------------------------- plugin plumbing
+
+
+def test_disabled_plugin_returns_nothing_and_keeps_nothing():
+    plugin = LoopClosurePlugin(LoopClosurePlugin.Config(enabled=False))
+    kf = Keyframe(0, 0.0, 0, np.eye(4), np.eye(4), np.eye(6), np.ones((100, 3)))
+    assert plugin.on_keyframe(kf, GraphView([kf], lambda i: np.eye(4))) == []
+    assert len(plugin.db) == 0 and plugin.events == []
+
+
+def test_config_validated_through_the_plugin_registry():
+    plugin = instantiate("slam.factors", {"name": "loop_closure", "sc_threshold": 0.2}, "loop")
+    assert isinstance(plugin, LoopClosurePlugin) and plugin.is_loop
+    assert plugin.db.params.threshold == 0.2
+    with pytest.raises(ConfigError, match="valid keys"):
+        instantiate("slam.factors", {"name": "loop_closure", "sc_treshold": 0.2}, "loop")
+    with pytest.raises(ConfigError, match="exclude_recent"):
+        instantiate("slam.factors", {"name": "loop_closure", "exclude_recent": 0}, "loop")
