@@ -1,0 +1,128 @@
+"""A cache of simulated sequences, so the demo and the tests generate each one only once.
+
+Location: ``$SLAM_CACHE/sim`` if SLAM_CACHE is set, else ``~/.cache/pyslam-graph/sim``.
+A sequence lives in ``<scene>-<frames|full>-<seed>-<hash>``; the hash covers the
+arguments, the sensor model, :data:`SIM_VERSION` and the simulator's source, so any
+change regenerates; stale sequences are pruned when a new one is written. Written into a
+temporary folder and renamed: readers never see a half-written sequence, and concurrent
+writers are safe.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from slam.sim.lidar import LidarModel
+from slam.sim.simulate import META_NAME, SimResult, load_result, simulate
+
+SIM_VERSION = 1  # bump when the simulated data change meaning
+
+
+def cache_root() -> Path:
+    """Folder holding cached sequences."""
+    env = os.environ.get("SLAM_CACHE")
+    base = Path(env).expanduser() if env else Path.home() / ".cache" / "pyslam-graph"
+    return base / "sim"
+
+
+_STAMP_NAME = "cache.json"
+
+
+def _code_digest() -> str:
+    return f"{SIM_VERSION}-{_source_digest()}"
+
+
+def prune_stale(root: Path) -> list[Path]:
+    """Remove cached sequences made by another simulator version/source; returns them."""
+    removed = []
+    current = _code_digest()
+    for folder in root.iterdir():
+        stamp = folder / _STAMP_NAME
+        if folder.name.startswith(".") or not stamp.is_file():
+            continue
+        try:
+            digest = json.loads(stamp.read_text()).get("digest")
+        except (OSError, ValueError):
+            digest = None
+        if digest != current:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
+def _source_digest() -> str:
+    h = hashlib.sha1()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def sequence_key(
+    scene: str,
+    *,
+    frames: int | None,
+    fmt: str,
+    seed: int,
+    pedestrians: bool,
+    model: LidarModel | None = None,
+) -> str:
+    """Folder name of a sequence in the cache."""
+    spec = {
+        "version": SIM_VERSION,
+        "source": _source_digest(),
+        "scene": scene,
+        "frames": frames,
+        "fmt": fmt,
+        "seed": seed,
+        "pedestrians": pedestrians,
+        "model": dataclasses.asdict(model or LidarModel()),
+    }
+    digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
+    return f"{scene}-{'full' if frames is None else frames}-{seed}-{digest}"
+
+
+def ensure_sequence(
+    scene: str,
+    *,
+    frames: int | None = None,
+    fmt: str = "ros1",
+    seed: int = 0,
+    pedestrians: bool = True,
+    cache_dir: Path | None = None,
+    model: LidarModel | None = None,
+) -> SimResult:
+    """The cached sequence for these arguments, simulating it first when missing."""
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    key = sequence_key(
+        scene, frames=frames, fmt=fmt, seed=seed, pedestrians=pedestrians, model=model
+    )
+    final = root / key
+    if (final / META_NAME).is_file():
+        return load_result(final)
+    root.mkdir(parents=True, exist_ok=True)
+    prune_stale(root)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
+    try:
+        os.chmod(tmp, 0o755)
+        simulate(
+            scene, tmp, frames=frames, fmt=fmt, seed=seed, pedestrians=pedestrians, model=model
+        )
+        (tmp / _STAMP_NAME).write_text(json.dumps({"digest": _code_digest()}))
+        if final.exists() and not (final / META_NAME).is_file():
+            shutil.rmtree(final, ignore_errors=True)  # a broken leftover
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not (final / META_NAME).is_file():  # pragma: no cover - unexpected
+                raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return load_result(final)

@@ -1,0 +1,182 @@
+"""Smooth ground-robot trajectories along closed planar curves.
+
+The robot follows a closed curve for ``loops`` laps (e.g. 1.1 so that it revisits its
+start). Speed is continuous: it ramps up from a crawl and slows in tight turns; yaw
+follows the path tangent; a small roll/pitch wobble (default 1 deg) exercises 6-DoF.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.errors import InputError
+
+_DS = 0.01  # table spacing along the path (m)
+
+
+def resample_closed(xy: np.ndarray, ds: float = _DS) -> np.ndarray:
+    """Resample a closed polyline (N,2) (last point != first) at arc-length spacing ~ds (m)."""
+    xy = np.asarray(xy, dtype=float)
+    closed = np.vstack([xy, xy[:1]])
+    seg = np.hypot(*np.diff(closed, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(int(np.ceil(s[-1] / ds)), 8)
+    s_new = np.linspace(0.0, s[-1], n, endpoint=False)
+    return np.column_stack([np.interp(s_new, s, closed[:, 0]), np.interp(s_new, s, closed[:, 1])])
+
+
+def corner_profile(length: float, ds: float = 0.002) -> np.ndarray:
+    """xy (K,2) of a 90-degree left turn starting at the origin heading +x, curvature
+    ``pi/length * sin^2(pi u/length)`` (zero at both ends: continuous yaw rate)."""
+    u = np.arange(0.0, length + ds / 2, ds)
+    heading = 0.5 * np.pi * (u / length - np.sin(2 * np.pi * u / length) / (2 * np.pi))
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(heading[1:]) + np.cos(heading[:-1])) * ds)])
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(heading[1:]) + np.sin(heading[:-1])) * ds)])
+    return np.column_stack([x, y])
+
+
+def rounded_rectangle(width: float, height: float, corner_length: float = 2.5) -> np.ndarray:
+    """Closed counter-clockwise centre line (N,2) of a width x height (m) rectangle centred at
+    the origin with smooth corners; starts at the middle of the bottom (south) side heading +x."""
+    c = corner_profile(corner_length)
+    d = c[-1, 0]  # the corner advances d along its entry direction and d sideways
+    if 2 * d >= min(width, height):
+        raise InputError("rounded_rectangle: corners longer than the sides")
+    pieces = []
+    legs = [(width, 0.0), (height, 0.5 * np.pi), (width, np.pi), (height, 1.5 * np.pi)]
+    start = np.array([0.0, -0.5 * height])
+    pos = start.copy()
+    for i, (side, yaw) in enumerate(legs):
+        rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        straight = side / 2 - d if i == 0 else side - 2 * d
+        if i == len(legs) - 1:
+            straight = side - 2 * d
+        n = max(int(straight / 0.01), 1)
+        pieces.append(pos + np.outer(np.linspace(0, straight, n, endpoint=False), rot[:, 0]))
+        pos = pos + straight * rot[:, 0]
+        pieces.append(pos + c[:-1] @ rot.T)
+        pos = pos + c[-1] @ rot.T
+    # Last half of the bottom side back to the start.
+    rest = width / 2 - d
+    pieces.append(
+        pos + np.outer(np.linspace(0, rest, max(int(rest / 0.01), 1), endpoint=False), [1.0, 0.0])
+    )
+    return np.vstack(pieces)
+
+
+def rotation_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """(M,3,3) Rz(yaw) @ Ry(pitch) @ Rx(roll), angles in rad (vectorised)."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    R = np.empty((np.size(yaw), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sp, cp * sr, cp * cr
+    return R
+
+
+@dataclass
+class Trajectory:
+    """T_world_sensor(t) of a robot following a closed curve; t in s from the start."""
+
+    s_tab: np.ndarray  # (K,) arc length (m)
+    t_tab: np.ndarray  # (K,) time at s (s)
+    xy_tab: np.ndarray  # (K,2) position (m)
+    yaw_tab: np.ndarray  # (K,) unwrapped heading (rad)
+    height: float  # sensor height above the ground (m)
+    wobble_amp: np.ndarray  # (2, H) roll / pitch amplitudes (rad)
+    wobble_freq: np.ndarray  # (2, H) Hz
+    wobble_phase: np.ndarray  # (2, H) rad
+    loop_length: float  # length of one lap (m)
+
+    @property
+    def duration(self) -> float:
+        return float(self.t_tab[-1])
+
+    @property
+    def length(self) -> float:
+        return float(self.s_tab[-1])
+
+    def distance_at(self, times: np.ndarray) -> np.ndarray:
+        """Distance travelled (m) at ``times`` (s); clamped to [0, duration]."""
+        return np.interp(np.asarray(times, dtype=float), self.t_tab, self.s_tab)
+
+    def pose_at(self, times) -> np.ndarray:
+        """(M,4,4) T_world_sensor at ``times`` (M,) s (vectorised; clamped to the ends)."""
+        t = np.atleast_1d(np.asarray(times, dtype=float))
+        s = self.distance_at(t)
+        x = np.interp(s, self.s_tab, self.xy_tab[:, 0])
+        y = np.interp(s, self.s_tab, self.xy_tab[:, 1])
+        yaw = np.interp(s, self.s_tab, self.yaw_tab)
+        arg = (
+            2 * np.pi * self.wobble_freq[:, :, None] * t[None, None, :]
+            + self.wobble_phase[:, :, None]
+        )
+        rp = np.sum(self.wobble_amp[:, :, None] * np.sin(arg), axis=1)  # (2, M)
+        T = np.tile(np.eye(4), (t.size, 1, 1))
+        T[:, :3, :3] = rotation_zyx(yaw, rp[1], rp[0])
+        T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x, y, self.height
+        return T
+
+
+def closed_curve_trajectory(
+    xy: np.ndarray,
+    *,
+    loops: float,
+    speed: float,
+    height: float,
+    rng: np.random.Generator,
+    turn_slowdown: float = 0.6,
+    ramp_distance: float = 1.0,
+    wobble_deg: float = 1.0,
+    start_offset: float = 0.0,
+) -> Trajectory:
+    """Drive ``loops`` laps of the closed curve ``xy`` (N,2) counter-clockwise.
+
+    speed: cruise speed (m/s); in turns v = speed / (1 + turn_slowdown * |curvature|).
+    The first ``ramp_distance`` m accelerate smoothly from 15 % of cruise speed.
+    start_offset: distance (m) along the curve where the robot starts.
+    """
+    if loops <= 0 or speed <= 0:
+        raise InputError("trajectory needs loops > 0 and speed > 0")
+    base = resample_closed(xy)
+    n = len(base)
+    seg = np.hypot(*np.diff(np.vstack([base, base[:1]]), axis=0).T)
+    lap = float(seg.sum())
+    shift = int(round(start_offset / lap * n)) % n
+    base = np.roll(base, -shift, axis=0)
+    # Periodic tangent and heading of one lap.
+    d = (np.roll(base, -1, axis=0) - np.roll(base, 1, axis=0)) * 0.5
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    winding = float(np.round((heading[-1] - heading[0]) / (2 * np.pi)))
+    ds = lap / n
+    s_lap = np.arange(n) * ds
+    # Curvature, smoothed over ~1 m, for the speed profile.
+    kappa = np.gradient(heading, ds)
+    w = max(int(1.0 / ds), 1)
+    kappa_s = np.convolve(np.concatenate([kappa[-w:], kappa, kappa[:w]]), np.ones(w) / w, "same")
+    kappa_s = kappa_s[w:-w]
+
+    total = loops * lap
+    s = np.arange(0.0, total + ds, ds)
+    k = np.floor(s / lap)
+    s_mod = s - k * lap
+    period_s = np.concatenate([s_lap, [lap]])
+    xy_tab = np.column_stack(
+        [np.interp(s_mod, period_s, np.append(base[:, i], base[0, i])) for i in range(2)]
+    )
+    yaw_lap = np.append(heading, heading[0] + 2 * np.pi * winding)
+    yaw_tab = np.interp(s_mod, period_s, yaw_lap) + 2 * np.pi * winding * k
+    kap = np.interp(s_mod, period_s, np.append(kappa_s, kappa_s[0]))
+    v = speed / (1.0 + turn_slowdown * np.abs(kap))
+    u = np.clip(s / ramp_distance, 0.0, 1.0)
+    v = v * (0.15 + 0.85 * u * u * (3 - 2 * u))
+    t_tab = np.concatenate([[0.0], np.cumsum(0.5 * (1 / v[1:] + 1 / v[:-1]) * np.diff(s))])
+
+    amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
+    freq = rng.uniform(0.15, 0.9, size=(2, 2))
+    phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
+    return Trajectory(s, t_tab, xy_tab, yaw_tab, height, amp, freq, phase, lap)

@@ -1,0 +1,127 @@
+"""The `slam` command end to end: outputs, exit codes and messages users see."""
+
+from __future__ import annotations
+
+import json
+from itertools import islice
+
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.typesys import Stores, get_typestore
+
+from slam.cli import main
+from slam.io.bag_writer import write_pointcloud_bag
+from slam.io.pointcloud2 import encode_pointcloud2
+from slam.io.source import open_source
+from slam.io.trajectory import read_tum
+
+TS1 = get_typestore(Stores.ROS1_NOETIC)
+PC2 = "sensor_msgs/msg/PointCloud2"
+FRAMES = 30
+
+
+@pytest.fixture(scope="module")
+def short_run(corridor_short, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    code = main(
+        [
+            "run",
+            str(corridor_short.bag),
+            "--gt",
+            str(corridor_short.ground_truth),
+            "--out",
+            str(out),
+            "--max-frames",
+            str(FRAMES),
+            "--quiet",
+        ]
+    )
+    return code, out
+
+
+def test_run_writes_every_output(short_run):
+    code, out = short_run
+    assert code == 0
+    for name in (
+        "trajectory.tum",
+        "trajectory.kitti",
+        "odometry.tum",
+        "map.pcd",
+        "graph.g2o",
+        "metrics.json",
+        "config.yaml",
+        "ape.json",
+        "report.html",
+    ):
+        assert (out / name).stat().st_size > 0, name
+    stamps, traj = read_tum(out / "trajectory.tum")
+    assert len(stamps) == FRAMES and len(np.loadtxt(out / "trajectory.kitti")) == FRAMES
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == FRAMES and metrics["keyframes"] >= 2
+    assert metrics["factors"]["odometry"] == metrics["keyframes"] - 1
+    ape = json.loads((out / "ape.json").read_text())
+    assert ape["ape_trans"]["rmse"] < 0.1  # 3 s of driving: centimetres, not metres
+
+
+def test_run_stamps_are_the_scan_header_stamps(short_run, corridor_short):
+    _, out = short_run
+    stamps, _ = read_tum(out / "trajectory.tum")
+    header = [s.stamp for s in islice(open_source(corridor_short.bag), FRAMES)]
+    np.testing.assert_allclose(stamps, header, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["run", "/no/such/bag.bag"], "not"),
+        (["run", "BAG", "--config", "nope"], "built-in configs"),
+        (["run", "BAG", "--set", "frontend.bogus_key=1"], "valid keys"),
+        (["run", "BAG", "--set", "backend.name=isam3"], "isam2"),
+        (["run", "BAG", "--topic", "/nope"], "/velodyne_points"),
+    ],
+)
+def test_bad_input_exits_2_with_a_message(corridor_short, capsys, args, fragment):
+    args = [str(corridor_short.bag) if a == "BAG" else a for a in args]
+    assert main(args + ["--quiet", "--max-frames", "2"]) == 2
+    assert fragment in capsys.readouterr().err
+
+
+def test_truncated_bag_exits_2(tmp_path, corridor_short, capsys):
+    raw = corridor_short.bag.read_bytes()
+    bad = tmp_path / "cut.bag"
+    bad.write_bytes(raw[: len(raw) // 3])
+    assert main(["run", str(bad), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_bad_message_half_way_keeps_what_was_computed(tmp_path, corridor_short, capsys):
+    scans = list(islice(open_source(corridor_short.bag), 8))
+    path = tmp_path / "bad.bag"
+    with Writer1(path) as w:
+        c = w.add_connection("/velodyne_points", PC2, typestore=TS1)
+        for i, s in enumerate(scans):
+            data = TS1.serialize_ros1(encode_pointcloud2(s, TS1), PC2)
+            w.write(c, int(s.stamp * 1e9), data[:40] if i == 5 else data)
+    out = tmp_path / "o"
+    assert main(["run", str(path), "--out", str(out), "--quiet"]) == 2
+    assert "message 5" in capsys.readouterr().err
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 5
+
+
+def test_empty_scans_and_nan_points_do_not_crash(tmp_path, corridor_short):
+    scans = list(islice(open_source(corridor_short.bag), 12))
+    scans[4].xyz[::3] = np.nan  # decoder drops NaN points
+    scans[6] = scans[6].select(np.zeros(len(scans[6]), dtype=bool))  # no points at all
+    bag = write_pointcloud_bag(tmp_path / "holes.bag", scans)
+    out = tmp_path / "o"
+    assert main(["run", str(bag), "--out", str(out), "--quiet"]) == 0
+    stamps, traj = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 12 and np.isfinite(traj).all()
+
+
+def test_info_prints_topics_and_fields(corridor_short, capsys):
+    assert main(["info", str(corridor_short.bag)]) == 0
+    text = capsys.readouterr().out
+    assert "/velodyne_points" in text and "ring" in text and "time" in text
