@@ -22,6 +22,10 @@ class Backend(Protocol):
         """Current estimate of every keyframe id."""
         ...
 
+    def pose(self, kf_id: int) -> gtsam.Pose3:
+        """Current estimate of one keyframe (cheap; raises KeyError if unknown)."""
+        ...
+
     def finalize(self) -> dict[int, gtsam.Pose3]:
         """Final estimate (batch back ends optimise here)."""
         ...

@@ -106,9 +106,11 @@ def write_outputs(
             log.warning("map not written: %s", exc)
     if st.keyframes:
         try:
-            from slam.pose_graph import write_g2o
+            from slam.factors import pose3
+            from slam.pose_graph import values_from_poses, write_g2o
 
-            write_g2o(out / GRAPH_G2O, pipeline.backend.graph(), pipeline.backend.values())
+            optimised = {k: pose3(T) for k, T in st.estimates.items()}
+            write_g2o(out / GRAPH_G2O, pipeline.backend.graph(), values_from_poses(optimised))
             written["graph"] = out / GRAPH_G2O
         except Exception as exc:  # noqa: BLE001
             log.warning("pose graph not written: %s", exc)

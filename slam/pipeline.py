@@ -104,7 +104,7 @@ class Pipeline:
             factor_sources if factor_sources is not None else build_factor_plugins(config.factors)
         )
         self.state = RunState()
-        self._estimate_cache: dict[int, np.ndarray] | None = None
+        self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self.view = GraphView(self.state.keyframes, self._estimate)
 
@@ -112,11 +112,10 @@ class Pipeline:
     def _estimate(self, kf_id: int) -> np.ndarray:
         if self._pending is not None and kf_id == self._pending[0]:
             return self._pending[1]
-        if self._estimate_cache is None or kf_id not in self._estimate_cache:
-            self._estimate_cache = {k: v.matrix() for k, v in self.backend.estimate().items()}
-        if kf_id in self._estimate_cache:
-            return self._estimate_cache[kf_id]
-        return self.state.keyframes[kf_id].pose_odom
+        cached = self._estimate_cache.get(kf_id)
+        if cached is None:
+            cached = self._estimate_cache[kf_id] = self.backend.pose(kf_id).matrix()
+        return cached
 
     # ------------------------------------------------------------------ per frame
     def step(self, scan: Scan) -> None:
@@ -170,7 +169,7 @@ class Pipeline:
         t0 = time.perf_counter()
         self.backend.update(factors, {kf_id: pose3(initial_T)}, loop_closed=loop_closed)
         st.stage_seconds["backend"] += time.perf_counter() - t0
-        self._estimate_cache = None
+        self._estimate_cache = {}
         self._pending = None
 
     # ------------------------------------------------------------------ whole run
