@@ -237,7 +237,15 @@ def evaluate_arrays(
             alignment = traj_est.align_origin(traj_gt)
             traj_est_full.transform(alignment)
     except EvoException as exc:
-        raise InputError(f"alignment failed (degenerate trajectory?): {exc}") from exc
+        # a straight or very short path has no unique Umeyama solution: fall back to
+        # aligning the first poses, and say so (users of short runs still get numbers)
+        try:
+            alignment = traj_est.align_origin(traj_gt)
+            traj_est_full.transform(alignment)
+            scale = 1.0
+            notes.append(f"{opt.align} alignment impossible ({exc}); aligned the first poses")
+        except EvoException as exc2:
+            raise InputError(f"alignment failed (degenerate trajectory?): {exc2}") from exc
 
     data = (traj_gt, traj_est)
     ape_t = metrics.APE(metrics.PoseRelation.translation_part)
