@@ -1,0 +1,1 @@
+"""Front-end plugins: compositions of the slam/ building blocks (see pyproject entry points)."""

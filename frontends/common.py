@@ -1,0 +1,193 @@
+"""What the scan-to-map front ends share: cropping, constant-velocity prediction, deskew,
+keyframe selection, information of the keyframe-to-keyframe motion and never crashing on a
+bad scan. A front end subclasses ``ScanToMapFrontend`` and implements ``_estimate``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.deskew import deskew, se3_log
+from slam.frontend import KeyframeConfig, is_new_keyframe
+from slam.preprocess.voxel import voxel_downsample
+from slam.registration.gicp import RegistrationError, se3_exp
+from slam.registration.information import (
+    InformationConfig,
+    default_information,
+    information_from_hessian,
+)
+from slam.types import Odometry, Scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CommonConfig:
+    """Settings every scan-to-map front end has.
+
+    min_range/max_range: crop (m). min_points: fewer valid points -> the frame is skipped
+    (constant-velocity prediction returned). deskew: motion-compensate with the previous
+    frame's motion when the scan has per-point time. constant_velocity: initial guess =
+    last pose x last motion (else the last pose). deskew_smoothing in [0, 1): weight of the
+    past in an exponential filter of the frame-to-frame twist used for deskewing; it breaks
+    the feedback loop (a registration error -> a wrong velocity -> a distorted next scan ->
+    a new error) that a raw last-motion deskew closes on weakly constrained axes.
+    cloud_voxel: voxel (m) of ``Odometry.cloud``.
+    drift_translation / drift_rotation_deg_per_m: odometry drift per metre travelled added to
+    the covariance of the keyframe-to-keyframe motion.
+    """
+
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    information: InformationConfig = field(default_factory=InformationConfig)
+    deskew: bool = True
+    constant_velocity: bool = True
+    min_range: float = 0.5
+    max_range: float = 100.0
+    min_points: int = 100
+    cloud_voxel: float = 0.15
+    deskew_smoothing: float = 0.7
+    drift_translation: float = 0.01
+    drift_rotation_deg_per_m: float = 0.1
+
+
+@dataclass
+class Estimate:
+    """What ``_estimate`` returns: the pose T_odom_sensor, registration Hessian/variance (or
+    None when there was nothing to register against) and diagnostics."""
+
+    pose: np.ndarray
+    H: np.ndarray | None = None
+    residual_variance: float = 1.0
+    extras: dict = field(default_factory=dict)
+
+
+def rotation_angle_deg(T: np.ndarray) -> float:
+    cos = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+class ScanToMapFrontend:
+    """Frame loop of a scan-to-map odometry; ``process(scan) -> Odometry``."""
+
+    def __init__(self, common: CommonConfig):
+        self._c = common
+        self.T_last = np.eye(4)  # T_odom_sensor of the previous processed frame
+        self.T_motion = np.eye(4)  # T_prev_current of the last frame pair
+        self.T_kf = np.eye(4)
+        self.last_stamp: float | None = None
+        self.motion_dt: float | None = None
+        self.twist = np.zeros(6)  # filtered (omega, v) per frame, for deskew
+        self.n_frames = 0
+        self.n_keyframes = 0
+
+    # ------------------------------------------------------------------ to implement
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ helpers
+    def _crop(self, scan: Scan) -> Scan:
+        xyz = np.asarray(scan.xyz, dtype=np.float64).reshape(-1, 3)
+        r2 = np.einsum("ij,ij->i", xyz, xyz)
+        ok = np.isfinite(r2) & (r2 >= self._c.min_range**2) & (r2 <= self._c.max_range**2)
+        out = scan.select(ok) if not ok.all() else scan
+        out.xyz = np.asarray(out.xyz, dtype=np.float64)
+        return out
+
+    def _deskew(self, scan: Scan) -> Scan:
+        if not self._c.deskew or scan.time is None or self.motion_dt is None:
+            return scan
+        if len(scan) == 0 or not np.any(scan.time > 0):
+            return scan
+        period = float(self.motion_dt)
+        xyz = deskew(scan.xyz, scan.time, se3_exp(self.twist), period)
+        return Scan(scan.stamp, xyz, scan.intensity, scan.ring, scan.time, scan.index)
+
+    def _keyframe_information(self, info_reg: np.ndarray, relative: np.ndarray) -> np.ndarray:
+        """Information of T_prevkf_current: the registration's covariance plus drift ~ distance."""
+        dist = float(np.linalg.norm(relative[:3, 3]))
+        cov = np.linalg.inv(info_reg)
+        s_t = self._c.drift_translation * dist
+        s_r = np.radians(self._c.drift_rotation_deg_per_m) * dist
+        cov = cov + np.diag([s_r**2] * 3 + [s_t**2] * 3)
+        info = np.linalg.inv(cov)
+        return 0.5 * (info + info.T)
+
+    # ------------------------------------------------------------------ main loop
+    def process(self, scan: Scan) -> Odometry:
+        """Estimate T_odom_sensor at ``scan.stamp`` (sweep start) and decide on a keyframe."""
+        t0 = time.perf_counter()
+        timings: dict[str, float] = {}
+        T_pred = self.T_last @ self.T_motion if self._c.constant_velocity else self.T_last.copy()
+        extras: dict = {"n_points": int(len(scan))}
+        skipped = None
+        est = None
+        cloud = None
+        work = self._crop(scan)
+        extras["n_after_crop"] = int(len(work))
+        if len(work) < self._c.min_points:
+            skipped = f"too few points ({len(work)} < {self._c.min_points} after range crop)"
+        else:
+            t = time.perf_counter()
+            work = self._deskew(work)
+            timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
+            try:
+                est = self._estimate(work, T_pred, timings)
+                extras.update(est.extras)
+                skipped = est.extras.get("skipped")
+            except RegistrationError as exc:
+                log.warning("frame %d: registration failed (%s); using prediction", scan.index, exc)
+                skipped = f"registration failed: {exc}"
+                est = None
+            t = time.perf_counter()
+            filtered = extras.pop("_filtered_xyz", work.xyz)
+            cloud = filtered[voxel_downsample(filtered, self._c.cloud_voxel)]
+            timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
+
+        pose = est.pose if est is not None else T_pred
+        first = self.n_keyframes == 0
+        if first and (skipped is not None and est is None):
+            # nothing usable yet: stay at the origin, no keyframe
+            pose = np.eye(4)
+        relative = np.linalg.inv(self.T_kf) @ pose if not first else np.eye(4)
+        if est is not None and est.H is not None:
+            inf = information_from_hessian(est.H, est.residual_variance, self._c.information)
+            info_reg, degenerate = inf.info, inf.degenerate
+            extras["min_info_eigenvalue"] = inf.min_eigenvalue
+        else:
+            info_reg, degenerate = default_information(self._c.information), est is None
+        is_kf = False
+        if est is not None and (first or is_new_keyframe(relative, self._c.keyframe)):
+            is_kf = True
+        info = self._keyframe_information(info_reg, relative)
+        if is_kf:
+            self.T_kf = pose.copy()
+            self.n_keyframes += 1
+        # motion model: frame-to-frame motion and its duration
+        if self.last_stamp is not None and scan.stamp > self.last_stamp:
+            self.motion_dt = float(scan.stamp - self.last_stamp)
+        if self.n_frames > 0 or est is not None:
+            self.T_motion = np.linalg.inv(self.T_last) @ pose
+            rho, phi = se3_log(self.T_motion)
+            a = self._c.deskew_smoothing if self.n_frames > 1 else 0.0
+            self.twist = a * self.twist + (1.0 - a) * np.concatenate([phi, rho])
+        self.T_last = pose.copy()
+        self.last_stamp = float(scan.stamp)
+        self.n_frames += 1
+        extras["degenerate"] = bool(degenerate)
+        if skipped is not None:
+            extras["skipped"] = skipped
+        timings["total_ms"] = (time.perf_counter() - t0) * 1e3
+        extras.update(timings)
+        return Odometry(
+            stamp=float(scan.stamp),
+            pose=pose,
+            is_keyframe=is_kf,
+            relative=relative,
+            info=info,
+            cloud=cloud if cloud is not None else np.zeros((0, 3)),
+            extras=extras,
+        )

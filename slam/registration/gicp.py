@@ -1,0 +1,377 @@
+"""Generalized-ICP scan-to-map registration (improved FLOAM, paper 000, section 2.2).
+
+Per-point covariances from the k nearest neighbours plus lambda*I (eq. (1), lambda = 1e-6),
+a Mahalanobis cost with the joint covariance C_ij = R Sigma_p R^T + Sigma_q (eqs. (2)-(3)),
+minimised over SE(3) by Gauss-Newton with Levenberg-Marquardt damping (eq. (4)); the
+information matrices C_ij^-1 are re-evaluated with the current rotation every iteration
+(eq. (5)). Convergence follows PCL's TransformationEpsilon / FitnessEpsilon (1e-6).
+
+This module also holds what the registration modules share: the result type, the typed
+error and the weighted Gauss-Newton solver over SE(3) (``solve_weighted``), which the
+point-to-edge / point-to-plane matcher of ``feature_icp`` reuses with its own weights.
+Tangent ordering everywhere is GTSAM's: rotation first, perturbation on the right
+(``T <- T exp(xi)``), so Hessians live in the source (sensor) frame.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from slam.errors import ConfigError, SlamError
+
+log = logging.getLogger(__name__)
+
+COVARIANCE_MODES = ("raw", "plane")
+
+
+class RegistrationError(SlamError):
+    """Registration could not run (too few points or correspondences)."""
+
+
+@dataclass
+class GicpConfig:
+    """GICP settings (paper 000, section 2.2).
+
+    k_covariance: neighbours per covariance (eq. (1)); lambda_reg: the lambda*I term (m^2).
+    covariance_mode: "raw" = eq. (1) as written; "plane" = Segal et al.'s regularisation
+    (eigenvalues replaced by (plane_epsilon, 1, 1)). max_correspondence:
+    rejection distance (m). transformation_epsilon: squared step size (m^2 and rad^2) below
+    which the solver stops; fitness_epsilon: relative change of the cost below which it stops.
+    """
+
+    k_covariance: int = 10
+    lambda_reg: float = 1e-6
+    covariance_mode: str = "raw"
+    plane_epsilon: float = 1e-3
+    max_correspondence: float = 1.0
+    max_iterations: int = 30
+    transformation_epsilon: float = 1e-6
+    fitness_epsilon: float = 1e-6
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.covariance_mode not in COVARIANCE_MODES:
+            raise ConfigError(
+                f"unknown covariance_mode '{self.covariance_mode}'; valid: "
+                + ", ".join(COVARIANCE_MODES)
+            )
+        if self.k_covariance < 3:
+            raise ConfigError(f"k_covariance must be >= 3, got {self.k_covariance}")
+        if self.max_correspondence <= 0 or self.max_iterations < 1:
+            raise ConfigError("max_correspondence must be > 0 and max_iterations >= 1")
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of a registration.
+
+    T_target_source: 4x4. H: 6x6 Gauss-Newton Hessian of the cost at the solution (rotation
+    first, source-frame tangent), b: gradient. cost: final weighted cost (sum of squared
+    Mahalanobis / point-to-feature distances); fitness: mean squared Euclidean distance of
+    inlier correspondences (m^2, PCL's fitness score); rmse = sqrt(fitness). dof: number of
+    scalar residuals minus 6 (for the residual variance cost / dof).
+    """
+
+    T_target_source: np.ndarray
+    H: np.ndarray
+    b: np.ndarray
+    cost: float
+    fitness: float
+    rmse: float
+    num_inliers: int
+    num_source: int
+    iterations: int
+    converged: bool
+    dof: int = 0
+
+
+# --------------------------------------------------------------------------- SE(3) helpers
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4x4 exp of a twist xi = (omega, v), rotation first (GTSAM Pose3.Expmap ordering)."""
+    omega, v = np.asarray(xi[:3], float), np.asarray(xi[3:], float)
+    theta = float(np.linalg.norm(omega))
+    K = skew(omega)
+    if theta < 1e-9:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = (
+            np.eye(3)
+            + (1 - np.cos(theta)) / theta**2 * K
+            + (theta - np.sin(theta)) / theta**3 * (K @ K)
+        )
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(omega).as_matrix()
+    T[:3, 3] = V @ v
+    return T
+
+
+def transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 pose to (N, 3) points."""
+    return xyz @ T[:3, :3].T + T[:3, 3]
+
+
+def _check_points(xyz: np.ndarray, name: str) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise RegistrationError(f"{name} must be an (N, 3) array, got shape {xyz.shape}")
+    return xyz
+
+
+# --------------------------------------------------------------------------- covariances
+
+
+def estimate_covariances(
+    xyz: np.ndarray,
+    k: int = 10,
+    lambda_reg: float = 1e-6,
+    mode: str = "raw",
+    *,
+    query: np.ndarray | None = None,
+    tree: cKDTree | None = None,
+    plane_epsilon: float = 1e-3,
+    threads: int = 2,
+) -> np.ndarray:
+    """(M, 3, 3) covariances (m^2) of the k nearest neighbours in ``xyz`` of each query point.
+
+    Eq. (1): Sigma = 1/(k-1) sum (p_t - mean)(p_t - mean)^T + lambda I. ``query`` defaults to
+    ``xyz`` itself (so the point is its own first neighbour). mode "plane" replaces the
+    eigenvalues by (eps, 1, 1) (Segal et al., GICP; small_gicp's default), so every point
+    weighs alike and acts as a plane; the result is then dimensionless.
+    """
+    xyz = _check_points(xyz, "points")
+    query = xyz if query is None else _check_points(query, "query points")
+    if len(xyz) < 3:
+        raise RegistrationError(f"need at least 3 points for covariances, got {len(xyz)}")
+    k_eff = min(k, len(xyz))
+    tree = cKDTree(xyz) if tree is None else tree
+    _, idx = tree.query(query, k=k_eff, workers=threads)
+    nb = xyz[idx.reshape(len(query), k_eff)]
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / (k_eff - 1)
+    if mode == "plane":
+        w, v = np.linalg.eigh(cov)
+        lam = np.array([plane_epsilon, 1.0, 1.0])
+        cov = np.einsum("nij,j,nkj->nik", v, lam, v)
+    elif mode != "raw":
+        raise ConfigError(f"unknown covariance mode '{mode}'; valid: {', '.join(COVARIANCE_MODES)}")
+    cov[:, [0, 1, 2], [0, 1, 2]] += lambda_reg
+    return cov
+
+
+class GicpTarget:
+    """Target of a GICP registration: points (M, 3), covariances (M, 3, 3) and a KD-tree."""
+
+    def __init__(self, points: np.ndarray, covs: np.ndarray, tree: cKDTree | None = None):
+        self.points = _check_points(points, "target points")
+        self.covs = np.asarray(covs, dtype=np.float64)
+        if self.covs.shape != (len(self.points), 3, 3):
+            raise RegistrationError(
+                f"target covariances must be ({len(self.points)}, 3, 3), got {self.covs.shape}"
+            )
+        self.tree = cKDTree(self.points) if tree is None else tree
+
+    @classmethod
+    def from_points(cls, xyz: np.ndarray, cfg: GicpConfig | None = None) -> GicpTarget:
+        """Target with covariances estimated from the target's own neighbourhoods (eq. (1))."""
+        cfg = cfg or GicpConfig()
+        xyz = _check_points(xyz, "target points")
+        tree = cKDTree(xyz)
+        covs = estimate_covariances(
+            xyz,
+            cfg.k_covariance,
+            cfg.lambda_reg,
+            cfg.covariance_mode,
+            tree=tree,
+            plane_epsilon=cfg.plane_epsilon,
+            threads=cfg.threads,
+        )
+        return cls(xyz, covs, tree)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+# --------------------------------------------------------------------------- the solver
+
+# associate(T) -> (p source points (N, 3), q target points (N, 3), W (N, 3, 3) information in
+# the target frame, robust weights (N,) or None, squared Euclidean distances (N,))
+Associate = Callable[[np.ndarray], tuple]
+
+
+def _linearise(T, p, q, W, w):
+    """Hessian, gradient and cost of sum w e^T W e, e = R p + t - q, right perturbation."""
+    R = T[:3, :3]
+    e = p @ R.T + T[:3, 3] - q
+    # d e / d xi = R [-[p]x, I]  (3x6, rotation first)
+    Jb = np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=2)
+    J = np.einsum("ij,njk->nik", R, Jb)
+    We = np.einsum("nij,nj->ni", W, e)
+    WJ = np.einsum("nij,njk->nik", W, J)
+    if w is not None:
+        We = We * w[:, None]
+        WJ = WJ * w[:, None, None]
+    H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
+    b = J.reshape(-1, 6).T @ We.reshape(-1)
+    cost = float(np.einsum("ni,ni->", e, We))
+    return H, b, cost
+
+
+def _cost(T, p, q, W, w) -> float:
+    e = p @ T[:3, :3].T + T[:3, 3] - q
+    We = np.einsum("nij,nj->ni", W, e)
+    if w is not None:
+        We = We * w[:, None]
+    return float(np.einsum("ni,ni->", e, We))
+
+
+def solve_weighted(
+    init_T: np.ndarray,
+    associate: Associate,
+    num_source: int,
+    *,
+    max_iterations: int,
+    transformation_epsilon: float,
+    fitness_epsilon: float,
+    residual_dims: int = 3,
+    min_inliers: int = 6,
+) -> RegistrationResult:
+    """Gauss-Newton / Levenberg-Marquardt on SE(3) with re-association every iteration.
+
+    Each iteration: associate at T, build H = sum J^T W J and b = sum J^T W e, solve
+    (H + mu diag H) xi = -b, accept the step when the cost with these correspondences drops
+    (else raise mu and retry). Stops when the step is below ``transformation_epsilon``
+    (squared metres and squared radians) or the cost changes by less than ``fitness_epsilon``
+    relative. ``residual_dims`` counts scalar residuals per correspondence (for dof).
+    """
+    T = np.asarray(init_T, dtype=np.float64).copy()
+    mu = 1e-6
+    prev_cost = None
+    converged = False
+    H = np.zeros((6, 6))
+    b = np.zeros(6)
+    cost, n_in, sqd, iterations = 0.0, 0, np.zeros(0), 0
+    for it in range(1, max_iterations + 1):
+        iterations = it
+        p, q, W, w, sqd = associate(T)
+        n_in = len(p)
+        if n_in < min_inliers:
+            raise RegistrationError(
+                f"only {n_in} correspondences within the distance limit (need {min_inliers});"
+                " the initial guess is too far off or the clouds do not overlap"
+            )
+        H, b, cost = _linearise(T, p, q, W, w)
+        if prev_cost is not None and abs(prev_cost - cost) <= fitness_epsilon * max(cost, 1e-12):
+            converged = True
+            break
+        prev_cost = cost
+        accepted = False
+        for _ in range(8):
+            A = H + mu * np.diag(np.maximum(np.diag(H), 1e-12))
+            try:
+                xi = -np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            T_new = T @ se3_exp(xi)
+            if _cost(T_new, p, q, W, w) <= cost:
+                T = T_new
+                mu = max(mu * 0.1, 1e-9)
+                accepted = True
+                break
+            mu *= 10.0
+        if not accepted:
+            converged = True  # no descent direction left: at a (local) minimum
+            break
+        if (
+            float(xi[:3] @ xi[:3]) < transformation_epsilon
+            and float(xi[3:] @ xi[3:]) < transformation_epsilon
+        ):
+            converged = True
+            break
+    fitness = float(sqd.mean()) if len(sqd) else float("inf")
+    return RegistrationResult(
+        T_target_source=T,
+        H=H,
+        b=b,
+        cost=cost,
+        fitness=fitness,
+        rmse=float(np.sqrt(fitness)),
+        num_inliers=n_in,
+        num_source=num_source,
+        iterations=iterations,
+        converged=converged,
+        dof=max(residual_dims * n_in - 6, 1),
+    )
+
+
+# --------------------------------------------------------------------------- GICP
+
+
+def gicp_align(
+    source_xyz: np.ndarray,
+    target: GicpTarget | np.ndarray,
+    init_T: np.ndarray | None = None,
+    cfg: GicpConfig | None = None,
+    source_covs: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Align ``source_xyz`` to ``target`` (a GicpTarget, e.g. the local map, or raw points).
+
+    Minimises eq. (4), sum d^T (R Sigma_p R^T + Sigma_q)^-1 d over nearest-neighbour pairs
+    closer than ``cfg.max_correspondence``. ``source_covs`` (N, 3, 3) default to eq. (1) on
+    the source itself. Returns T_target_source and the Hessian at the solution.
+    """
+    cfg = cfg or GicpConfig()
+    src = _check_points(source_xyz, "source points")
+    if not isinstance(target, GicpTarget):
+        target = GicpTarget.from_points(target, cfg)
+    if len(src) < 6 or len(target) < 6:
+        raise RegistrationError(
+            f"GICP needs at least 6 source and target points, got {len(src)} and {len(target)}"
+        )
+    if source_covs is None:
+        source_covs = estimate_covariances(
+            src,
+            cfg.k_covariance,
+            cfg.lambda_reg,
+            cfg.covariance_mode,
+            plane_epsilon=cfg.plane_epsilon,
+            threads=cfg.threads,
+        )
+    elif source_covs.shape != (len(src), 3, 3):
+        raise RegistrationError(f"source_covs must be ({len(src)}, 3, 3), got {source_covs.shape}")
+    max_d = cfg.max_correspondence
+
+    def associate(T):
+        moved = transform(T, src)
+        d, j = target.tree.query(moved, k=1, distance_upper_bound=max_d, workers=cfg.threads)
+        ok = np.isfinite(d)
+        R = T[:3, :3]
+        C = np.einsum("ij,njk,lk->nil", R, source_covs[ok], R) + target.covs[j[ok]]  # eq. (3)
+        return src[ok], target.points[j[ok]], np.linalg.inv(C), None, d[ok] ** 2  # eq. (5)
+
+    init = np.eye(4) if init_T is None else np.asarray(init_T, dtype=np.float64)
+    return solve_weighted(
+        init,
+        associate,
+        len(src),
+        max_iterations=cfg.max_iterations,
+        transformation_epsilon=cfg.transformation_epsilon,
+        fitness_epsilon=cfg.fitness_epsilon,
+    )

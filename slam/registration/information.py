@@ -1,0 +1,102 @@
+"""From a registration Hessian to a plausible information matrix, and a degeneracy test.
+
+A scan-to-map Gauss-Newton Hessian H = sum J^T W J counts thousands of correlated residuals
+as independent, so H / s^2 (s^2 = residual variance) claims sub-millimetre sigmas. Factor
+graphs need a covariance that reflects the real drift of odometry: we scale by the residual
+variance, then clamp the eigenvalues of the information (in units of the best-case sigmas)
+so no direction is more certain than ``min_sigma_translation`` / ``min_sigma_rotation_deg``.
+
+The degeneracy flag follows LOAM (Zhang and Singh, "On degeneration of optimization-based
+state estimation problems"): a direction is degenerate when the smallest eigenvalue of the
+(normalised) information falls below a threshold, i.e. its sigma is much larger than the
+best case. Ordering is GTSAM's: rotation (rx, ry, rz) first, then translation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.registration.gicp import RegistrationResult
+
+
+@dataclass
+class InformationConfig:
+    """Sigma floors (best case) and ceilings (worst case) of a registration's covariance.
+
+    degenerate_factor: a direction whose sigma exceeds this many times its floor is
+    degenerate (LOAM-style eigenvalue test on the normalised information).
+    """
+
+    min_sigma_translation: float = 0.01
+    min_sigma_rotation_deg: float = 0.05
+    max_sigma_translation: float = 10.0
+    max_sigma_rotation_deg: float = 30.0
+    degenerate_factor: float = 5.0
+
+
+@dataclass
+class Information:
+    """info: 6x6 (rotation first). degenerate: flag. min_eigenvalue: smallest eigenvalue of the
+    normalised information before clamping (1 = best case; < 1/degenerate_factor^2 flags).
+    weak_direction: its eigenvector (6,)."""
+
+    info: np.ndarray
+    degenerate: bool
+    min_eigenvalue: float
+    weak_direction: np.ndarray
+
+
+def _floors(cfg: InformationConfig) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.array([np.radians(cfg.min_sigma_rotation_deg)] * 3 + [cfg.min_sigma_translation] * 3)
+    hi = np.array([np.radians(cfg.max_sigma_rotation_deg)] * 3 + [cfg.max_sigma_translation] * 3)
+    return lo, hi
+
+
+def information_from_hessian(
+    H: np.ndarray,
+    residual_variance: float = 1.0,
+    cfg: InformationConfig | None = None,
+) -> Information:
+    """Information = H / residual_variance with its eigenvalues clamped to plausible sigmas.
+
+    H: 6x6 Hessian of a least-squares cost (rotation first, as the solvers here produce).
+    residual_variance: s^2 of the residuals (cost / dof); the information of a least-squares
+    estimate is H / s^2. The normalised information N = D I D (D = diag(best-case sigmas)) has
+    eigenvalue 1 where a direction is known to its floor; eigenvalues are clipped to
+    [(floor/ceiling)^2, 1] and mapped back, so the result is symmetric positive definite.
+    """
+    cfg = cfg or InformationConfig()
+    H = np.asarray(H, dtype=np.float64)
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)):
+        H = np.zeros((6, 6))
+    info = 0.5 * (H + H.T) / max(float(residual_variance), 1e-12)
+    lo, hi = _floors(cfg)
+    N = lo[:, None] * info * lo[None, :]
+    w, V = np.linalg.eigh(N)
+    min_eig = float(w[0])
+    lower = float(np.max((lo / hi) ** 2))
+    w_c = np.clip(w, lower, 1.0)
+    N_c = (V * w_c) @ V.T
+    out = N_c / lo[:, None] / lo[None, :]
+    return Information(
+        info=0.5 * (out + out.T),
+        degenerate=bool(min_eig < 1.0 / cfg.degenerate_factor**2),
+        min_eigenvalue=min_eig,
+        weak_direction=V[:, 0].copy(),
+    )
+
+
+def registration_information(
+    result: RegistrationResult, cfg: InformationConfig | None = None
+) -> Information:
+    """``information_from_hessian`` of a RegistrationResult, s^2 = cost / dof."""
+    s2 = result.cost / max(result.dof, 1)
+    return information_from_hessian(result.H, s2, cfg)
+
+
+def default_information(cfg: InformationConfig | None = None, factor: float = 10.0) -> np.ndarray:
+    """A weak diagonal information (sigmas = ``factor`` x the floors) for skipped frames."""
+    lo, _ = _floors(cfg or InformationConfig())
+    return np.diag(1.0 / (factor * lo) ** 2)

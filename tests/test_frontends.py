@@ -1,0 +1,56 @@
+"""Both front ends on a short simulated corridor: bounded odometry error, keyframes, info."""
+
+import numpy as np
+import pytest
+
+from slam.config import load_config
+from slam.frontend import Frontend
+from slam.io.source import open_source
+from slam.plugins import instantiate
+from slam.sim.cache import ensure_sequence
+from slam.types import Scan
+
+FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def corridor():
+    sim = ensure_sequence("corridor", frames=FRAMES)
+    stamps, poses = sim.read_ground_truth()
+    return list(open_source(sim.bag)), stamps, poses
+
+
+@pytest.mark.parametrize(("name", "max_err"), [("improved_floam", 0.03), ("floam", 0.08)])
+def test_frontend_on_simulated_corridor(corridor, name, max_err):
+    scans, gt_stamps, gt = corridor
+    fe = instantiate("slam.frontends", load_config(name).frontend, "frontend")
+    assert isinstance(fe, Frontend)
+    outs = [fe.process(s) for s in scans]
+    idx = np.clip(np.searchsorted(gt_stamps, [o.stamp for o in outs]), 0, len(gt) - 1)
+    G = np.linalg.inv(gt[idx[0]]) @ gt[idx]
+    P = np.array([o.pose for o in outs])
+    err = np.linalg.norm(P[:, :3, 3] - G[:, :3, 3], axis=1)
+    dist = np.sum(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1))
+    assert dist > 3.0
+    assert err[-1] < 0.01 * dist, (err[-1], dist)  # < 1 % of the distance travelled
+    assert err.max() < max_err, err.max()
+    assert outs[0].is_keyframe and np.allclose(outs[0].relative, np.eye(4))
+    kfs = [o for o in outs if o.is_keyframe]
+    assert 2 <= len(kfs) <= int(dist) + 2
+    for o in kfs[1:]:
+        sig = np.sqrt(np.diag(np.linalg.inv(o.info)))
+        assert np.all(sig[3:] > 0.009) and np.all(sig[3:] < 0.5)  # plausible, not 1e-9
+        assert 100 < len(o.cloud) < len(scans[0])
+    assert all("skipped" not in o.extras for o in outs)
+    assert all(o.extras["n_edges"] > 20 and o.extras["n_planes"] > 50 for o in outs)
+
+
+@pytest.mark.parametrize("name", ["improved_floam", "floam"])
+def test_frontend_survives_empty_and_tiny_scans(name):
+    fe = instantiate("slam.frontends", {"name": name}, "frontend")
+    empty = fe.process(Scan(0.0, np.zeros((0, 3))))
+    assert "skipped" in empty.extras and not empty.is_keyframe
+    assert np.allclose(empty.pose, np.eye(4))
+    tiny = fe.process(Scan(0.1, np.random.default_rng(0).normal(size=(20, 3)) * 5))
+    assert "skipped" in tiny.extras
+    assert np.all(np.isfinite(tiny.info)) and tiny.info.shape == (6, 6)
