@@ -33,6 +33,28 @@ CSV_COLUMNS = (
 )  # fmt: skip
 
 
+def auto_descriptor_params(cloud: np.ndarray, cfg: LoopClosurePlugin.Config) -> ScanContextParams:
+    """Descriptor geometry from the first keyframe, so one default fits rooms and plazas.
+
+    max_radius: 1.2 x the 95th percentile of horizontal ranges, rounded up to 5 m, in
+    [10, 80] m (a corridor gets ~15-25 m, an open plaza the outdoor 80 m cap).
+    lidar_height: depth of the ground below the sensor (2nd percentile of z), >= 0.
+    Fixed for the whole run so that all descriptors share one grid.
+    """
+    pts = np.asarray(cloud, dtype=float)
+    if len(pts) < 10:
+        radius, height = 80.0, 2.0
+    else:
+        r95 = float(np.percentile(np.hypot(pts[:, 0], pts[:, 1]), 95))
+        radius = float(np.clip(5.0 * np.ceil(1.2 * r95 / 5.0), 10.0, 80.0))
+        height = max(0.0, -float(np.percentile(pts[:, 2], 2)))
+    if cfg.max_radius > 0:
+        radius = cfg.max_radius
+    if cfg.lidar_height >= 0:
+        height = cfg.lidar_height
+    return ScanContextParams(cfg.rings, cfg.sectors, radius, height)
+
+
 class LoopClosurePlugin:
     """Loop closure factors from Scan Context + GICP (LeGO-LOAM-LPB's two-layer scheme)."""
 
@@ -55,12 +77,17 @@ class LoopClosurePlugin:
         repetitive corridors, corridors seen backwards); consistency_ratio < 0 disables it.
         min_sigma_trans (m) / min_sigma_rot_deg: sigma floor of the loop noise."""
 
-        robust: str = "cauchy"
-        robust_param: float = 1.0
+        # Huber, not Cauchy(1): a verified loop's residual at the drifted linearisation point
+        # is large (whitened ~100s); Cauchy(1) then weights it ~1e-5 and the loop never pulls,
+        # Huber keeps a bounded but non-vanishing influence (measured on the corridor loop:
+        # APE 1.16 m -> 0.71 m with Cauchy(1), -> 0.08 m with Huber(1.345)). False loops are
+        # stopped upstream by verification and the odometry-consistency gate.
+        robust: str = "huber"
+        robust_param: float = 1.345
         rings: int = 20
         sectors: int = 60
-        max_radius: float = 80.0
-        lidar_height: float = 2.0
+        max_radius: float = 0.0  # 0 = auto: from the first keyframe's ranges (indoor/outdoor)
+        lidar_height: float = -1.0  # < 0 = auto: height of the ground below the sensor
         exclude_recent: int = 30
         exclude_seconds: float = 0.0
         top_k: int = 10
@@ -93,7 +120,9 @@ class LoopClosurePlugin:
                     raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
             if self.exclude_recent < 1:
                 raise ValueError(f"exclude_recent must be >= 1, got {self.exclude_recent}")
-            for name in ("max_radius", "verify_voxel", "sc_threshold", "inlier_distance"):
+            if self.max_radius < 0:
+                raise ValueError(f"max_radius must be > 0 m (or 0 = auto), got {self.max_radius}")
+            for name in ("verify_voxel", "sc_threshold", "inlier_distance"):
                 if not getattr(self, name) > 0:
                     raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
             if not 0.0 <= self.min_overlap <= 1.0:
@@ -101,7 +130,11 @@ class LoopClosurePlugin:
 
     def __init__(self, config: Config | None = None):
         self.config = cfg = config or self.Config()
-        self.sc_params = ScanContextParams(cfg.rings, cfg.sectors, cfg.max_radius, cfg.lidar_height)
+        self.sc_params: ScanContextParams | None = None  # fixed at the first keyframe
+        if cfg.max_radius > 0 and cfg.lidar_height >= 0:
+            self.sc_params = ScanContextParams(
+                cfg.rings, cfg.sectors, cfg.max_radius, cfg.lidar_height
+            )
         self.db = ScanContextDatabase(
             cfg.rings,
             cfg.sectors,
@@ -143,6 +176,13 @@ class LoopClosurePlugin:
         if not cfg.enabled:
             return []
         t0 = time.perf_counter()
+        if self.sc_params is None:
+            self.sc_params = auto_descriptor_params(kf.cloud, cfg)
+            log.info(
+                "scan context: max_radius %.0f m, lidar_height %.2f m (auto)",
+                self.sc_params.max_radius,
+                self.sc_params.lidar_height,
+            )
         desc = scan_context(kf.cloud, self.sc_params)
         self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
         self._clouds[kf.id] = self._downsample(kf.cloud)
