@@ -125,3 +125,69 @@ def test_info_prints_topics_and_fields(corridor_short, capsys):
     assert main(["info", str(corridor_short.bag)]) == 0
     text = capsys.readouterr().out
     assert "/velodyne_points" in text and "ring" in text and "time" in text
+
+
+def test_map_walls_are_sharp(short_run, corridor_short):
+    """The end wall of the corridor's south leg (x = 12 m in the world) is thin in map.pcd."""
+    import open3d as o3d
+
+    _, out = short_run
+    cloud = np.asarray(o3d.io.read_point_cloud(str(out / "map.pcd")).points)
+    _, gt = read_tum(corridor_short.ground_truth)
+    _, odom = read_tum(out / "odometry.tum")
+    T_world_odom = gt[0] @ np.linalg.inv(odom[0])
+    world = cloud @ T_world_odom[:3, :3].T + T_world_odom[:3, 3]
+    sel = (np.abs(world[:, 0] - 12.0) < 0.3) & (world[:, 1] > -6.8) & (world[:, 1] < -4.7)
+    sel &= (world[:, 2] > 0.3) & (world[:, 2] < 2.7)
+    assert sel.sum() > 50
+    residual = np.abs(world[sel, 0] - 12.0)
+    # a few cm: the robot accelerates from rest here, where constant-velocity deskew lags
+    assert np.median(residual) < 0.03 and np.percentile(residual, 90) < 0.08
+
+
+def test_compare_table_and_no_loop_reproduces_odometry(corridor_short, tmp_path, capsys):
+    out = tmp_path / "cmp"
+    code = main(
+        [
+            "compare",
+            str(corridor_short.bag),
+            "--gt",
+            str(corridor_short.ground_truth),
+            "--configs",
+            "floam",
+            "improved_floam",
+            "--out",
+            str(out),
+            "--max-frames",
+            "20",
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    table = capsys.readouterr().out
+    for word in ("Max", "Mean", "Median", "Min", "RMSE", "Std", "floam", "improved_floam", "%"):
+        assert word in table
+    assert (out / "compare.csv").read_text().count("\n") >= 3
+    assert (out / "report.html").stat().st_size > 10_000
+    assert (out / "floam" / "trajectory.tum").exists()
+    loop_out = tmp_path / "noloop"
+    assert (
+        main(
+            [
+                "run",
+                str(corridor_short.bag),
+                "--config",
+                "improved_floam_loop",
+                "--no-loop",
+                "--out",
+                str(loop_out),
+                "--max-frames",
+                "20",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    _, a = read_tum(out / "improved_floam" / "trajectory.tum")
+    _, b = read_tum(loop_out / "trajectory.tum")
+    assert np.array_equal(a, b)
