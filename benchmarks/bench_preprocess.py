@@ -1,22 +1,39 @@
 """Speed of preprocessing and features on a simulated 28.8k-point 16-beam scan (ms per scan).
 
-Run: .venv/bin/python benchmarks/bench_preprocess.py [--repeat 7]
-Baseline: open3d remove_statistical_outlier (C++). Also prints outlier removal / surface kept.
+Run: .venv/bin/python benchmarks/bench_preprocess.py [--repeat 7] [--before REV] [--knn]
+Every row is also given relative to open3d remove_statistical_outlier (C++), measured in the
+same run, so numbers from runs under different machine load can be compared. --before REV
+loads the preprocessing modules of git revision REV (``git show``, read-only) and times them
+side by side with the working tree ("before"/"after" columns, same run, results compared).
+--knn also times the k-NN back ends (small_gicp 1/2 threads, scipy cKDTree, open3d).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import time
+import types
 
 import numpy as np
 import open3d as o3d
 
-from slam.deskew import deskew
-from slam.features.curvature import covariance_curvature
-from slam.features.loam import FeatureConfig, extract_features
-from slam.preprocess.sor import classic_sor, weighted_sor
-from slam.preprocess.voxel import voxel_downsample
+import slam.features.curvature
+import slam.features.loam
+from slam import deskew as deskew_mod
+from slam.preprocess import sor as sor_mod
+from slam.preprocess import voxel as voxel_mod
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+MODULES = {
+    "sor": ("slam/preprocess/sor.py", sor_mod),
+    "voxel": ("slam/preprocess/voxel.py", voxel_mod),
+    "curvature": ("slam/features/curvature.py", slam.features.curvature),
+    "loam": ("slam/features/loam.py", slam.features.loam),
+    "deskew": ("slam/deskew.py", deskew_mod),
+}
 
 
 def scan(seed=0):
@@ -42,39 +59,149 @@ def scan(seed=0):
     return xyz, label, ring, time_s
 
 
+def load_revision(rev: str) -> dict[str, types.ModuleType]:
+    """The preprocessing modules as of git revision rev, wired to each other (not to HEAD)."""
+    mods = {}
+    for name, (path, _) in MODULES.items():
+        src = subprocess.run(
+            ["git", "show", f"{rev}:{path}"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout
+        mod = types.ModuleType(f"before_{name}")
+        sys.modules[mod.__name__] = mod  # dataclasses look their module up
+        exec(compile(src, f"{rev}:{path}", "exec"), mod.__dict__)
+        mods[name] = mod
+    mods["loam"].covariance_curvature = mods["curvature"].covariance_curvature
+    return mods
+
+
+def stages(m: dict[str, types.ModuleType], xyz, ring, time_s, T) -> dict:
+    """Callables per stage; the improved-FLOAM chain is deskew -> weighted SOR -> features with
+    kappa -> voxel downsample of edges (0.2 m) and planes (0.4 m)."""
+    cfg = m["loam"].FeatureConfig(use_covariance_curvature=True)
+    keep = m["sor"].weighted_sor(xyz)
+    xf, rf = xyz[keep], ring[keep]
+    feats = m["loam"].extract_features(xf, rf, cfg)
+    edges, planes = xf[feats.edge_idx], xf[feats.plane_idx]
+
+    def chain():
+        p = m["deskew"].deskew(xyz, time_s, T, 0.1)
+        k = m["sor"].weighted_sor(p)
+        q = p[k]
+        f = m["loam"].extract_features(q, ring[k], cfg)
+        m["voxel"].voxel_downsample(q[f.edge_idx], 0.2)
+        m["voxel"].voxel_downsample(q[f.plane_idx], 0.4)
+
+    return {
+        "classic_sor (k=10)": lambda: m["sor"].classic_sor(xyz),
+        "weighted_sor (k=10)": lambda: m["sor"].weighted_sor(xyz),
+        "covariance_curvature (k=10, all)": lambda: m["curvature"].covariance_curvature(xf),
+        "extract_features": lambda: m["loam"].extract_features(xf, rf),
+        "extract_features + kappa": lambda: m["loam"].extract_features(xf, rf, cfg),
+        "deskew": lambda: m["deskew"].deskew(xyz, time_s, T, 0.1),
+        "voxel_downsample (all, 0.2 m)": lambda: m["voxel"].voxel_downsample(xyz, 0.2),
+        "voxel_downsample (edges+planes)": lambda: (
+            m["voxel"].voxel_downsample(edges, 0.2),
+            m["voxel"].voxel_downsample(planes, 0.4),
+        ),
+        "IMPROVED-FLOAM PREPROCESSING": chain,
+    }
+
+
 def timed(fn, repeat):
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
+    """Median wall-clock ms of fn."""
+    return timed_pair({"_": fn}, repeat)["_"][0]
+
+
+def timed_pair(fns: dict, repeat: int) -> dict[str, tuple[float, float]]:
+    """Median (wall, CPU) ms per callable, the callables interleaved run by run so that load
+    changes hit all of them alike. CPU = process time, close to the unloaded wall time of
+    single-threaded code on a busy machine (threads add their CPU time up instead)."""
+    for fn in fns.values():
         fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+    wall: dict = {k: [] for k in fns}
+    cpu: dict = {k: [] for k in fns}
+    for _ in range(repeat):
+        for k, fn in fns.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            fn()
+            wall[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+    return {k: (1e3 * float(np.median(wall[k])), 1e3 * float(np.median(cpu[k]))) for k in fns}
+
+
+def knn_rows(xyz, repeat) -> dict:
+    import small_gicp
+    from scipy.spatial import cKDTree
+
+    def o3d_knn():
+        t = o3d.core.Tensor(xyz)
+        nns = o3d.core.nns.NearestNeighborSearch(t)
+        nns.knn_index()
+        return nns.knn_search(t, 11)
+
+    rows = {
+        f"small_gicp KdTree, {n} thread(s)": lambda n=n: small_gicp.KdTree(
+            xyz, num_threads=n
+        ).batch_knn_search(xyz, 11, num_threads=n)
+        for n in (1, 2)
+    }
+    for w in (1, -1):
+        rows[f"cKDTree workers={w}"] = lambda w=w: cKDTree(xyz).query(xyz, 11, workers=w)
+        rows[f"cKDTree unbalanced, workers={w}"] = lambda w=w: cKDTree(
+            xyz, balanced_tree=False, compact_nodes=False
+        ).query(xyz, 11, workers=w)
+    rows["open3d NearestNeighborSearch"] = o3d_knn
+    return {name: ms for name, (ms, _) in timed_pair(rows, repeat).items()}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--before", metavar="REV", help="git revision to compare against")
+    ap.add_argument("--knn", action="store_true", help="also time the k-NN back ends")
     args = ap.parse_args()
     xyz, label, ring, time_s = scan()
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     T = np.eye(4)
+    T[:3, :3] = o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([0.0, 0.0, 0.05]))
     T[:3, 3] = [0.1, 0.0, 0.0]
-    cfg_cov = FeatureConfig(use_covariance_curvature=True)
-    cases = {
-        "classic_sor (k=10)": lambda: classic_sor(xyz),
-        "weighted_sor (k=10)": lambda: weighted_sor(xyz),
-        "open3d remove_statistical_outlier": lambda: pc.remove_statistical_outlier(11, 1.0),
-        "covariance_curvature (k=10)": lambda: covariance_curvature(xyz),
-        "extract_features": lambda: extract_features(xyz, ring),
-        "extract_features + kappa": lambda: extract_features(xyz, ring, cfg_cov),
-        "deskew": lambda: deskew(xyz, time_s, T, 0.1),
-        "voxel_downsample (0.2 m)": lambda: voxel_downsample(xyz, 0.2),
-    }
-    print(f"{len(xyz)} points, median of {args.repeat} runs")
-    for name, fn in cases.items():
-        print(f"  {name:36s} {timed(fn, args.repeat):8.1f} ms")
-    for name, keep in (("classic", classic_sor(xyz)), ("weighted", weighted_sor(xyz))):
+    after = {name: mod for name, (_, mod) in MODULES.items()}
+    runs = {"after": stages(after, xyz, ring, time_s, T)}
+    if args.before:
+        runs = {"before": stages(load_revision(args.before), xyz, ring, time_s, T), **runs}
+    ref = timed(lambda: pc.remove_statistical_outlier(11, 1.0), args.repeat)
+    print(f"{len(xyz)} points, median of {args.repeat} runs, load average {os.getloadavg()[0]:.2f}")
+    print(f"  open3d remove_statistical_outlier (reference R) {ref:7.1f} ms")
+    head = "".join(f"{k + ' wall':>12s} {'cpu':>6s} {'x R':>5s}" for k in runs)
+    print(f"  {'stage (ms per scan)':36s}{head}")
+    for name in runs["after"]:
+        res = timed_pair({k: run[name] for k, run in runs.items()}, args.repeat)
+        cols = "".join(f"{w:12.1f} {c:6.1f} {w / ref:5.2f}" for w, c in res.values())
+        print(f"  {name:36s}{cols}")
+    if args.knn:
+        print("  k-NN, 28.8k points, k=11 (build + query):")
+        for name, ms in knn_rows(xyz, args.repeat).items():
+            print(f"    {name:34s} {ms:8.1f} ms")
+    if args.before:
+        b = load_revision(args.before)
+        for fn in ("classic_sor", "weighted_sor"):
+            same = np.array_equal(getattr(b["sor"], fn)(xyz), getattr(sor_mod, fn)(xyz))
+            print(f"  {fn} keep-mask identical to {args.before}: {same}")
+        cfg = slam.features.loam.FeatureConfig(use_covariance_curvature=True)
+        fb = b["loam"].extract_features(xyz, ring, b["loam"].FeatureConfig(**vars(cfg)))
+        fa = slam.features.loam.extract_features(xyz, ring, cfg)
+        same = all(
+            np.array_equal(getattr(fb, f), getattr(fa, f))
+            for f in ("edge_idx", "plane_idx", "sharp_idx", "flat_idx")
+        )
+        print(f"  features (with kappa) identical to {args.before}: {same}")
+        db = b["deskew"].deskew(xyz, time_s, T, 0.1)
+        err = np.abs(db - deskew_mod.deskew(xyz, time_s, T, 0.1)).max()
+        print(f"  deskew max difference: {err:.1e} m")
+    for name, keep in (
+        ("classic", sor_mod.classic_sor(xyz)),
+        ("weighted", sor_mod.weighted_sor(xyz)),
+    ):
         print(
             f"  {name:9s} outliers removed {1 - keep[label == 1].mean():6.1%}"
             f"  surface kept {keep[label == 0].mean():6.1%}"

@@ -71,5 +71,32 @@ def deskew(
         raise InputError(f"sweep_period must be > 0 s, got {sweep_period}")
     if len(xyz) == 0:
         return xyz.copy()
-    R, t = interpolate_pose(T, time / sweep_period)
-    return np.einsum("nij,nj->ni", R, xyz) + t
+    rho, phi = se3_log(T)
+    s = time / sweep_period
+    theta = float(np.linalg.norm(phi))
+    if theta < 1e-12:  # pure translation
+        return xyz + s[:, None] * rho
+    # closed form of exp(s * log T) along the fixed axis u: Rodrigues for R(s) p and
+    # t(s) = s (rho + (1 - cos x)/x u x rho + (x - sin x)/x u x (u x rho)), x = s * theta;
+    # only scalars per point, no per-point matrices
+    u = phi / theta
+    x = s * theta
+    c, sn = np.cos(x), np.sin(x)
+    small = np.abs(x) < 1e-4
+    xs = np.where(small, 1.0, x)
+    a = (1.0 - c) / xs
+    b = (xs - sn) / xs
+    if small.any():  # series: (1 - cos x)/x and (x - sin x)/x lose precision as x -> 0
+        xm = x[small]
+        a[small] = xm / 2.0 - xm**3 / 24.0
+        b[small] = xm**2 / 6.0 - xm**4 / 120.0
+    u_rho = np.cross(u, rho)
+    uu_rho = np.cross(u, u_rho)
+    px, py, pz = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    along = (xyz @ u) * (1.0 - c)
+    out = np.empty_like(xyz)
+    out[:, 0] = px * c + (u[1] * pz - u[2] * py) * sn + along * u[0]
+    out[:, 1] = py * c + (u[2] * px - u[0] * pz) * sn + along * u[1]
+    out[:, 2] = pz * c + (u[0] * py - u[1] * px) * sn + along * u[2]
+    out += np.outer(s, rho) + np.outer(s * a, u_rho) + np.outer(s * b, uu_rho)
+    return out

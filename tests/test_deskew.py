@@ -66,3 +66,21 @@ def test_deskew_passthrough_and_errors():
         deskew(xyz, np.zeros(5), np.eye(3), PERIOD)
     with pytest.raises(InputError):
         deskew(xyz, np.zeros(5), T_START_END, 0.0)
+
+
+@pytest.mark.parametrize(
+    "T",
+    [
+        T_START_END,
+        pose([0.3, -0.2, 1.0], [0.5, 2.0, 0.1]),
+        pose([0.0, 0.0, 1e-7], [0.1, 0.0, 0.0]),
+        pose([0.0, 0.0, 0.0], [0.1, -0.2, 0.3]),
+    ],
+)
+def test_closed_form_deskew_equals_per_point_geodesic(T):
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-30, 30, (500, 3))
+    time = np.r_[0.0, PERIOD, rng.uniform(0, PERIOD, 498)]
+    R, t = interpolate_pose(T, time / PERIOD)
+    expected = np.einsum("nij,nj->ni", R, xyz) + t
+    assert np.abs(deskew(xyz, time, T, PERIOD) - expected).max() < 1e-9

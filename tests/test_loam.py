@@ -7,6 +7,8 @@ from slam.features.curvature import covariance_curvature
 from slam.features.loam import (
     FeatureConfig,
     _greedy_nms,
+    _group_rank,
+    _sector_top_picks,
     extract_features,
     ring_from_elevation,
 )
@@ -166,7 +168,7 @@ def test_covariance_curvature_rejects_pseudo_edges():
     inner = (np.abs(xyz[:, 0] - 4.0) < 0.5) & (np.abs(xyz[:, 1]) < 0.5)
     assert inner[plain.edge_idx].sum() >= 100
     assert inner[corrected.edge_idx].sum() <= 0.02 * inner[plain.edge_idx].sum()
-    assert np.median(corrected.kappa[inner]) > 1.4
+    assert np.nanmedian(corrected.kappa[inner]) > 1.4
 
 
 def test_covariance_curvature_keeps_true_corners(room):
@@ -175,3 +177,43 @@ def test_covariance_curvature_keeps_true_corners(room):
     corrected = extract_features(xyz, ring, FeatureConfig(use_covariance_curvature=True))
     assert len(corrected.edge_idx) >= 0.95 * len(plain.edge_idx)
     assert corner_distance(xyz[corrected.edge_idx]).max() < 0.05
+
+
+def test_covariance_curvature_on_a_subset_equals_full(room):
+    xyz, _, _ = room
+    full = covariance_curvature(xyz, 10)
+    q = np.random.default_rng(0).choice(len(xyz), 700, replace=False)
+    assert np.array_equal(covariance_curvature(xyz, 10, query_idx=q), full[q])
+
+
+def test_kappa_only_where_needed_gives_the_full_decisions(room):
+    xyz, ring, _ = room
+    cfg = FeatureConfig(use_covariance_curvature=True, kappa_edge_max=1.2, kappa_plane_max=1.3)
+    f = extract_features(xyz, ring, cfg)
+    full = covariance_curvature(xyz, cfg.cov_k)
+    done = ~np.isnan(f.kappa)
+    assert np.array_equal(f.kappa[done], full[done])
+    assert done[f.edge_idx].all() and done[f.plane_idx].all()
+    assert (full[f.edge_idx] <= 1.2).all() and (full[f.plane_idx] <= 1.3).all()
+    # with kappa_plane_max >= sqrt(3) planes never need kappa: only picked edges are queried
+    lazy = extract_features(
+        xyz, ring, FeatureConfig(use_covariance_curvature=True, kappa_plane_max=2.0)
+    )
+    assert (~np.isnan(lazy.kappa)).sum() < 0.05 * len(xyz)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_sector_top_picks_equal_full_nms_then_rank(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 3000))
+    key = rng.random(n)
+    if seed % 3 == 0:
+        key = np.round(key, 1)  # many ties
+    cand = rng.random(n) < rng.uniform(0.2, 1.0)
+    run = np.cumsum(rng.random(n) < 0.02)
+    sector = np.sort(rng.integers(0, 12, n))
+    sel = _greedy_nms(key, cand, run, 5)
+    rank = _group_rank(sector[sel], key[sel])
+    for n_top in (1, 4, 20):
+        expected = np.sort(sel[rank < n_top])
+        assert np.array_equal(_sector_top_picks(key, cand, run, 5, sector, n_top), expected)

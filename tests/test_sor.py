@@ -123,3 +123,20 @@ def test_voxel_downsample_one_point_per_voxel_nearest_to_centroid():
     best = members[np.argmin(np.linalg.norm(xyz[members] - centroid, axis=1))]
     assert idx[0] == best
     assert np.array_equal(voxel_downsample(xyz, 0.0), np.arange(5000))
+
+
+def test_knn_distances_equal_scipy(scan):
+    from scipy.spatial import cKDTree
+
+    from slam.preprocess.sor import knn_distances
+
+    xyz, _ = scan
+    ref, _ = cKDTree(xyz).query(xyz, k=11)
+    assert np.allclose(knn_distances(xyz, 10), ref[:, 1:], atol=1e-12)
+    assert knn_distances(xyz[:4], 10).shape == (4, 3)
+
+
+def test_voxel_downsample_ties_go_to_lowest_index():
+    xyz = np.array([[0.75, 0.75, 0.75], [0.25, 0.25, 0.25], [0.75, 0.75, 0.75], [0.25] * 3])
+    assert np.array_equal(voxel_downsample(xyz, 1.0), [0])  # all 0.433 m from the centroid
+    assert np.array_equal(voxel_downsample(np.zeros((0, 3)), 1.0), np.arange(0))

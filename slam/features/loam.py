@@ -3,7 +3,9 @@
 All rings are processed in one pass over the ring-sorted concatenated cloud with ring
 boundaries masked. Selection = A-LOAM's greedy "pick the sharpest, suppress 5 neighbours
 each side unless a gap lies between", computed as an exact parallel non-maximum suppression
-(rounds of numpy operations, no per-point Python loop), then a per-sector top-N.
+(rounds of numpy operations, no per-point Python loop), then a per-sector top-N; for the few
+flats per sector the NMS runs only on each sector's best candidates (same result, see
+``_sector_top_picks``).
 Optional curvature correction (improved FLOAM, paper 000, section 2.3) rejects pseudo-edges
 and pseudo-planes with the covariance curvature kappa = tr(Sigma)/||Sigma||_F.
 """
@@ -15,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.errors import ConfigError, InputError
-from slam.features.curvature import covariance_curvature
+from slam.features.curvature import KAPPA_VOLUME, covariance_curvature
 
 
 @dataclass
@@ -71,7 +73,8 @@ class Features:
     less-flat planes (every non-edge point with c < plane_threshold; downsample before use);
     sharp_idx/flat_idx: the few strongest per sector (A-LOAM's frame-to-frame sets).
     curvature: (N,) LOAM c in m^2 per input point, NaN where undefined (ring ends, dropped).
-    kappa: (N,) covariance curvature when use_covariance_curvature, else None.
+    kappa: (N,) covariance curvature when use_covariance_curvature, else None; computed only
+    where a decision needs it (NMS-picked edge candidates, plane candidates), NaN elsewhere.
     """
 
     edge_idx: np.ndarray
@@ -94,15 +97,44 @@ def ring_from_elevation(
     return np.clip(ring, 0, n_beams - 1).astype(np.int16)
 
 
-def _group_rank(group: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Rank (0 = largest key) of each element within its group."""
-    order = np.lexsort((-key, group))
+def _argsort_stable(x: np.ndarray) -> np.ndarray:
+    """np.argsort(x, kind="stable") (ties by position), via the faster quicksort when the
+    values are distinct (the usual case for float keys)."""
+    o = np.argsort(x)
+    xs = x[o]
+    tie = len(xs) > 1 and (np.any(xs[1:] == xs[:-1]) or np.isnan(xs[-1]))
+    return np.argsort(x, kind="stable") if tie else o
+
+
+def _by_group(group: np.ndarray, pre: np.ndarray) -> np.ndarray:
+    """Stable re-sort of the permutation pre by group (radix sort for small int groups)."""
+    g = group[pre]
+    if len(g) and 0 <= g.min() and g.max() < 2**15:
+        g = g.astype(np.int16)
+    return pre[np.argsort(g, kind="stable")]
+
+
+def _ranks(group: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Global priority (0 = largest key, ties by position), rank within the group and a dense
+    group id (0..G-1) of each element."""
+    by_key = _argsort_stable(-key)
+    prio = np.empty(len(key), dtype=np.int64)
+    prio[by_key] = np.arange(len(key))
+    order = _by_group(group, by_key)
     g = group[order]
-    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    new_group = np.r_[True, g[1:] != g[:-1]]
+    start = np.flatnonzero(new_group)
     lengths = np.diff(np.r_[start, len(g)])
     rank = np.empty(len(g), dtype=np.int64)
     rank[order] = np.arange(len(g)) - np.repeat(start, lengths)
-    return rank
+    gid = np.empty(len(g), dtype=np.int64)
+    gid[order] = np.cumsum(new_group) - 1
+    return prio, rank, gid
+
+
+def _group_rank(group: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Rank (0 = largest key, ties by position) of each element within its group."""
+    return _ranks(group, key)[1]
 
 
 def _neighbours(idx: np.ndarray, run: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -122,27 +154,75 @@ def _greedy_nms(key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int) -> n
     settles at least the best undecided candidate and the result equals the greedy one.
     """
     ci = np.flatnonzero(cand)
-    if ci.size == 0:
+    m = ci.size
+    if m == 0:
         return ci
-    local = np.full(len(run), -1, dtype=np.int64)
-    local[ci] = np.arange(ci.size)
-    nb, same = _neighbours(ci, run, w)
-    nl = np.where(same, local[nb], -1)
-    has = nl >= 0
-    nl = np.where(has, nl, 0)
-    prio = np.empty(ci.size, dtype=np.int64)
-    prio[np.lexsort((ci, -key[ci]))] = np.arange(ci.size)
-    higher = has & (prio[nl] < prio[:, None])
-    state = np.zeros(ci.size, dtype=np.int8)  # 0 undecided, 1 picked, 2 suppressed
-    active = np.arange(ci.size)
+    prio = np.empty(m + 1, dtype=np.int64)  # 0 = best; ties by index; m = "no candidate"
+    prio[_argsort_stable(-key[ci])] = np.arange(m)
+    prio[m] = m
+    # candidate id per position, padded by w each side (m where none); same-run mask
+    lid = np.full(len(run) + 2 * w, m, dtype=np.int64)
+    lid[ci + w] = np.arange(m)
+    run_pad = np.full(len(run) + 2 * w, run.min() - 1 if len(run) else 0)
+    run_pad[w : w + len(run)] = run
+    pos = (ci + w)[:, None] + np.r_[-w:0, 1 : w + 1]
+    nl = np.where(run_pad[pos] == run[ci][:, None], lid[pos], m)
+    higher = prio[nl] < prio[:m, None]
+    state = np.zeros(m + 1, dtype=np.int8)  # 0 undecided, 1 picked, 2 suppressed
+    state[m] = 3  # the "no candidate" slot is never picked nor undecided
+    active = np.arange(m)
     while active.size:
         st = state[nl[active]]
-        near_pick = (has[active] & (st == 1)).any(axis=1)
+        near_pick = (st == 1).any(axis=1)
         blocked = (higher[active] & (st == 0)).any(axis=1)
         state[active[near_pick]] = 2
         state[active[~near_pick & ~blocked]] = 1
         active = active[state[active] == 0]
-    return ci[state == 1]
+    return ci[state[:m] == 1]
+
+
+def _sector_top_picks(
+    key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int, sector: np.ndarray, n_top: int
+) -> np.ndarray:
+    """The n_top best (largest key) picks per sector of ``_greedy_nms(key, cand, run, w)``.
+
+    Same result without running the NMS over every candidate: a candidate's fate depends only
+    on higher-key candidates within +-w (recursively), so the NMS over a set closed under that
+    relation is exact on it. Start from each sector's best 8*n_top candidates (plus closure),
+    accept a sector once n_top picks fall in its exact prefix, widen the others and repeat.
+    """
+    ci = np.flatnonzero(cand)
+    if ci.size == 0 or n_top <= 0:
+        return ci[:0]
+    sec = sector[ci]
+    prio, rank, sec_id = _ranks(sec, key[ci])  # ties by index, as in the NMS
+    sec_size = np.bincount(sec_id)
+    limit = np.full(len(sec_size), 8 * n_top)
+    local = np.full(len(run), -1, dtype=np.int64)
+    local[ci] = np.arange(ci.size)
+    while True:
+        in_prefix = rank < limit[sec_id]
+        member = in_prefix.copy()
+        todo = np.flatnonzero(member)
+        while todo.size:  # closure: add higher-priority candidates within +-w
+            nb, same = _neighbours(ci[todo], run, w)
+            nl = np.where(same, local[nb], -1)
+            add = (nl >= 0) & (prio[np.maximum(nl, 0)] < prio[todo][:, None])
+            new = np.unique(nl[add])
+            new = new[~member[new]]
+            member[new] = True
+            todo = new
+        mask = np.zeros(len(run), dtype=bool)
+        mask[ci[member]] = True
+        picked = np.zeros(ci.size, dtype=bool)
+        picked[local[_greedy_nms(key, mask, run, w)]] = True
+        trusted = np.flatnonzero(picked & in_prefix)
+        count = np.bincount(sec_id[trusted], minlength=len(sec_size))
+        done = (count >= n_top) | (limit >= sec_size)
+        if done.all():
+            r = _group_rank(sec[trusted], key[ci[trusted]])
+            return np.sort(ci[trusted[r < n_top]])
+        limit[~done] *= 4
 
 
 def _spread(mask: np.ndarray, offsets: range, ring: np.ndarray) -> np.ndarray:
@@ -171,7 +251,8 @@ def extract_features(
     points of a ring (e.g. per-point firing time); it is a key, not a permutation.
     Curvature c_i = ||sum_{|j|<=w, j!=0} (p_{i+j} - p_i)||^2 (A-LOAM). With
     use_covariance_curvature, kappa (paper 000) is computed on the input cloud (expected to be
-    SOR-filtered) and a picked edge is kept only if kappa <= kappa_edge_max: a true edge
+    SOR-filtered; neighbours searched in all of it, kappa only for the points a decision needs)
+    and a picked edge is kept only if kappa <= kappa_edge_max: a true edge
     has a line-like or folded neighbourhood (measured 1.0-1.33 on a 16-beam scan, k=10),
     while a "sharp" point whose neighbours fill a plane (sqrt 2) or a noise blob (sqrt 3) is
     a pseudo-edge; plane points need kappa <= kappa_plane_max (not noise scatter). Note: with
@@ -194,9 +275,8 @@ def extract_features(
     w = cfg.window
     rng_all = np.linalg.norm(xyz, axis=1)
     use = np.flatnonzero((ring >= 0) & (rng_all >= cfg.min_range) & (rng_all <= cfg.max_range))
-    kappa_all = None
-    if cfg.use_covariance_curvature and n_all >= 2:
-        kappa_all = covariance_curvature(xyz, cfg.cov_k)
+    use_kappa = cfg.use_covariance_curvature and n_all >= 2
+    kappa_all = np.full(n_all, np.nan) if use_kappa else None
     if use.size == 0:
         return Features(_empty_idx(), _empty_idx(), curvature_all, kappa=kappa_all)
 
@@ -206,7 +286,7 @@ def extract_features(
         if azimuth_order is None
         else np.asarray(azimuth_order, dtype=np.float64)[use]
     )
-    order = use[np.lexsort((key, ring[use]))]
+    order = use[_by_group(ring[use], _argsort_stable(key))]  # = lexsort((key, ring))
     p = xyz[order]
     n = len(p)
     _, rid, rlen = np.unique(ring[order], return_inverse=True, return_counts=True)
@@ -248,10 +328,6 @@ def extract_features(
         lim = cfg.parallel_ratio * depth**2
         picked |= (gap2 > lim) & (prev_gap2 > lim) & same_next & np.r_[False, same_next[:-1]]
 
-    kappa = None if kappa_all is None else kappa_all[order]
-    edge_ok = np.ones(n, dtype=bool) if kappa is None else kappa <= cfg.kappa_edge_max
-    plane_ok = np.ones(n, dtype=bool) if kappa is None else kappa <= cfg.kappa_plane_max
-
     # sectors and suppression runs (a run ends at a squared gap > neighbor_gap or a ring end)
     span = np.maximum(nr - 2 * w, 1)
     sector = rid * cfg.n_sectors + np.clip((pos - w) * cfg.n_sectors // span, 0, cfg.n_sectors - 1)
@@ -261,6 +337,21 @@ def extract_features(
     # edges: greedy NMS by decreasing c, then per-sector top-N
     cand = valid & ~picked & (cv > cfg.edge_threshold)
     sel = _greedy_nms(cv, cand, run, w)
+    plane_cand = valid & (cv < cfg.plane_threshold)
+    edge_ok = plane_ok = np.ones(n, dtype=bool)
+    if kappa_all is not None:
+        # kappa only where a decision needs it: NMS-picked edges, and plane candidates unless
+        # kappa_plane_max >= sqrt(3) (kappa never exceeds it); one tree, one batch query
+        need = np.zeros(n, dtype=bool)
+        need[sel] = True
+        if cfg.kappa_plane_max < KAPPA_VOLUME + 1e-9:
+            need |= plane_cand
+        q = np.flatnonzero(need)
+        kappa = np.full(n, np.nan)
+        kappa[q] = covariance_curvature(xyz, cfg.cov_k, query_idx=order[q])
+        kappa_all[order[q]] = kappa[q]
+        edge_ok = ~(kappa > cfg.kappa_edge_max)
+        plane_ok = ~(kappa > cfg.kappa_plane_max)
     sel = sel[edge_ok[sel]]  # a rejected pseudo-edge is not replaced by its neighbours
     rank = _group_rank(sector[sel], cv[sel])
     less_sharp = sel[rank < cfg.max_less_sharp]
@@ -272,11 +363,9 @@ def extract_features(
     near_edge[nb[same]] = True
 
     # flats: greedy NMS by increasing c among points not suppressed by edges
-    cand = valid & ~picked & ~near_edge & (cv < cfg.plane_threshold) & plane_ok
-    sel = _greedy_nms(-cv, cand, run, w)
-    rank = _group_rank(sector[sel], -cv[sel])
-    flat = sel[rank < cfg.max_flat]
-    less_flat = np.flatnonzero(valid & ~is_edge & (cv < cfg.plane_threshold) & plane_ok)
+    cand = plane_cand & ~picked & ~near_edge & plane_ok
+    flat = _sector_top_picks(-cv, cand, run, w, sector, cfg.max_flat)
+    less_flat = np.flatnonzero(plane_cand & ~is_edge & plane_ok)
 
     def back(i: np.ndarray) -> np.ndarray:
         return np.sort(order[i])

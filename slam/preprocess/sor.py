@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError, InputError
+from slam.preprocess.knn import knn
 
 SOR_METHODS = ("weighted", "classic")
 
@@ -55,7 +55,7 @@ def _check_xyz(xyz: np.ndarray) -> np.ndarray:
 def knn_distances(xyz: np.ndarray, k: int) -> np.ndarray:
     """(N, k) distances (m) to the k nearest other points, ascending; one KD-tree query."""
     k_eff = min(k, len(xyz) - 1)
-    dist, _ = cKDTree(xyz).query(xyz, k=k_eff + 1, workers=-1)
+    _, dist = knn(xyz, xyz, k_eff + 1)
     return dist[:, 1:]
 
 

@@ -20,7 +20,8 @@ def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
 def voxel_downsample(xyz: np.ndarray, voxel: float) -> np.ndarray:
     """Sorted indices of kept points: per occupied voxel, the point nearest to its centroid.
 
-    voxel: edge length in metres; <= 0 keeps every point. Vectorised (one sort, bincounts).
+    voxel: edge length in metres; <= 0 keeps every point. Ties go to the lowest index.
+    Vectorised: one stable argsort of the packed int64 voxel keys, then segment reductions.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -28,13 +29,16 @@ def voxel_downsample(xyz: np.ndarray, voxel: float) -> np.ndarray:
     n = len(xyz)
     if voxel <= 0 or n == 0:
         return np.arange(n)
-    _, inverse, counts = np.unique(voxel_keys(xyz, voxel), return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    centroid = np.stack(
-        [np.bincount(inverse, weights=xyz[:, a]) / counts for a in range(3)], axis=1
-    )
-    dist2 = np.sum((xyz - centroid[inverse]) ** 2, axis=1)
-    order = np.lexsort((dist2, inverse))
-    first = np.ones(n, dtype=bool)
-    first[1:] = inverse[order][1:] != inverse[order][:-1]
+    keys = voxel_keys(xyz, voxel)
+    order = np.argsort(keys, kind="stable")  # within a voxel: ascending index
+    ks = keys[order]
+    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    counts = np.diff(np.r_[start, n])
+    seg = np.repeat(np.arange(len(start)), counts)
+    ps = xyz[order]
+    centroid = np.stack([np.bincount(seg, weights=ps[:, a]) for a in range(3)], 1) / counts[:, None]
+    dist2 = np.sum((ps - centroid[seg]) ** 2, axis=1)  # same rounding as before: same ties
+    best = dist2 == np.minimum.reduceat(dist2, start)[seg]
+    first = np.flatnonzero(best)
+    first = first[np.r_[True, seg[first[1:]] != seg[first[:-1]]]]  # lowest index among ties
     return np.sort(order[first])
