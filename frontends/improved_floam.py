@@ -12,7 +12,7 @@ import numpy as np
 
 from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.errors import ConfigError
-from slam.features.loam import FeatureConfig, extract_features
+from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.preprocess.sor import SorConfig, apply_sor
 from slam.preprocess.voxel import voxel_downsample
@@ -33,8 +33,16 @@ class ImprovedFloamConfig(CommonConfig):
     "features" = from the feature set itself (eq. (1) on the feature cloud). map_covariance:
     "map" = covariances of newly inserted map points, and of the map points near them,
     from their k neighbours in the map (the target "calculated identically", dense over
-    many scans, refreshed as the map fills in); "scan" = keep the source
+    many scans, refreshed as the map fills in; the default); "scan" = keep the source
     covariances rotated into the map frame.
+
+    Source covariances know the scan lines (rings) of their support: on open ground a
+    16-beam ring is a thin arc, a feature's k neighbours lie on that ring alone, and eq. (1)
+    on them claims a sharp "normal" towards the next ring. The ring pattern moves with the
+    sensor, so trusting it snapped every scan onto the map's rings (toward zero motion).
+    A support from one ring is made isotropic at its extent (no trusted direction, see
+    ``estimate_covariances``); supports spanning rings keep eq. (1) as written. The map
+    side is the dense map itself (many scans, many rings), so it needs no labels.
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -86,18 +94,24 @@ class ImprovedFloam(ScanToMapFrontend):
 
         t = time.perf_counter()
         rc = cfg.registration
+        src_idx = np.concatenate([e_idx, p_idx])
+        rings = scan.ring
+        if rings is None:
+            rings = ring_from_elevation(xyz, cfg.features.n_beams, cfg.features.fov_deg)
+        rings = np.asarray(rings)
         if cfg.covariance_source == "scan":
-            ref = xyz[voxel_downsample(xyz, cfg.covariance_voxel)]
-            ref = np.concatenate([ref, src])
+            ref_idx = np.concatenate([voxel_downsample(xyz, cfg.covariance_voxel), src_idx])
         else:
-            ref = src
+            ref_idx = src_idx
         covs = estimate_covariances(
-            ref,
+            xyz[ref_idx],
             rc.k_covariance,
             rc.lambda_reg,
             rc.covariance_mode,
             query=src,
             plane_epsilon=rc.plane_epsilon,
+            line_ratio=rc.line_ratio,
+            labels=rings[ref_idx],
             threads=rc.threads,
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
@@ -143,6 +157,7 @@ class ImprovedFloam(ScanToMapFrontend):
                 query=self.map.points[dirty],
                 tree=tree,
                 plane_epsilon=rc.plane_epsilon,
+                line_ratio=rc.line_ratio,
                 threads=rc.threads,
             )
         extras["map_points"] = len(self.map)

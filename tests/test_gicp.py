@@ -52,7 +52,34 @@ def test_covariances_of_a_plane_are_flat_and_regularised():
     assert np.allclose(np.linalg.eigvalsh(plane), [1e-3, 1.0, 1.0], atol=1e-9)
 
 
-@pytest.mark.parametrize("mode", ["raw", "plane"])
+def test_shape_covariances_trust_only_what_the_support_samples():
+    """A ring on open ground (one scan line) is no plane: isotropic; several rings: a plane
+    with the ground normal; a pole sampled by several rings: a line."""
+    rng = np.random.default_rng(0)
+    az = np.linspace(-0.3, 0.3, 60)
+    rings = [np.c_[r * np.cos(az), r * np.sin(az), rng.normal(0, 1e-3, 60)] for r in (4, 4.4)]
+    pole = np.c_[np.full(12, 3.0), np.full(12, -1.0), np.linspace(0, 1.1, 12)]
+    xyz = np.concatenate(rings + [pole])
+    ring = np.r_[np.zeros(60), np.ones(60), np.arange(12)].astype(int)
+    one = np.flatnonzero(ring[:120] == 0)[30:31]
+    kw = {"k": 10, "lambda_reg": 0.0, "mode": "shape"}
+    iso = estimate_covariances(xyz, query=xyz[one], labels=ring, **kw)
+    assert np.allclose(iso[0], np.eye(3))
+    assert not np.allclose(estimate_covariances(xyz, query=xyz[one], **kw)[0], np.eye(3))
+    raw = estimate_covariances(xyz, query=xyz[one], labels=ring, k=10, lambda_reg=0.0)
+    extent = np.linalg.eigvalsh(estimate_covariances(xyz, query=xyz[one], k=10, lambda_reg=0.0))[
+        0, 2
+    ]
+    assert np.allclose(raw[0], np.eye(3) * raw[0, 0, 0]) and np.isclose(raw[0, 0, 0], extent)
+    both = estimate_covariances(xyz[:120], query=xyz[one], labels=ring[:120], k=30, mode="shape")
+    w, v = np.linalg.eigh(both[0])
+    assert np.allclose(w, [1e-3, 1, 1], atol=1e-5) and abs(v[2, 0]) > 0.99  # ground normal z
+    line = estimate_covariances(pole, query=pole[5:6], labels=ring[120:], k=8, mode="shape")
+    w, v = np.linalg.eigh(line[0])
+    assert np.allclose(w, [1e-3, 1e-3, 1], atol=1e-5) and abs(v[2, 2]) > 0.99  # along z
+
+
+@pytest.mark.parametrize("mode", ["raw", "plane", "shape"])
 def test_gicp_recovers_known_transform(mode):
     rng = np.random.default_rng(1)
     target = room_scan(rng)

@@ -27,7 +27,7 @@ from slam.errors import ConfigError, SlamError
 
 log = logging.getLogger(__name__)
 
-COVARIANCE_MODES = ("raw", "plane")
+COVARIANCE_MODES = ("raw", "plane", "shape")
 
 
 class RegistrationError(SlamError):
@@ -40,7 +40,12 @@ class GicpConfig:
 
     k_covariance: neighbours per covariance (eq. (1)); lambda_reg: the lambda*I term (m^2).
     covariance_mode: "raw" = eq. (1) as written; "plane" = Segal et al.'s regularisation
-    (eigenvalues replaced by (plane_epsilon, 1, 1)). max_correspondence:
+    (eigenvalues replaced by (plane_epsilon, 1, 1)); "shape" = regularise by what the
+    neighbourhood supports (see ``estimate_covariances``): a surface spanning several scan
+    lines -> plane (plane_epsilon, 1, 1), a line spanning several scan lines (pole, corner)
+    -> line (plane_epsilon, plane_epsilon, 1), a support sampled by one scan line only (a
+    ring on open ground) or degenerate -> isotropic (1, 1, 1), i.e. no direction is
+    trusted. line_ratio: lambda_2 / lambda_1 below which a support is a line. max_correspondence:
     rejection distance (m). transformation_epsilon: squared step size (m^2 and rad^2) below
     which the solver stops; fitness_epsilon: relative change of the cost below which it stops.
     """
@@ -49,6 +54,7 @@ class GicpConfig:
     lambda_reg: float = 1e-6
     covariance_mode: str = "raw"
     plane_epsilon: float = 1e-3
+    line_ratio: float = 0.05
     max_correspondence: float = 1.0
     max_iterations: int = 30
     transformation_epsilon: float = 1e-6
@@ -146,6 +152,8 @@ def estimate_covariances(
     query: np.ndarray | None = None,
     tree: cKDTree | None = None,
     plane_epsilon: float = 1e-3,
+    line_ratio: float = 0.05,
+    labels: np.ndarray | None = None,
     threads: int = 2,
 ) -> np.ndarray:
     """(M, 3, 3) covariances (m^2) of the k nearest neighbours in ``xyz`` of each query point.
@@ -154,6 +162,19 @@ def estimate_covariances(
     ``xyz`` itself (so the point is its own first neighbour). mode "plane" replaces the
     eigenvalues by (eps, 1, 1) (Segal et al., GICP; small_gicp's default), so every point
     weighs alike and acts as a plane; the result is then dimensionless.
+
+    ``labels`` (the scan line / ring of each reference point), when given, mark supports whose
+    neighbours all lie on one scan line; mode "raw" makes their covariance isotropic at the
+    support's extent (largest eigenvalue), since one line cannot tell a surface's normal.
+
+    mode "shape" regularises by the shape the support really has (dimensionless as well):
+    with eigenvalues l1 >= l2 >= l3, a support with l2 >= line_ratio * l1 is a surface ->
+    (eps, 1, 1) with the normal of the smallest eigenvalue; a line (l2 < line_ratio * l1) ->
+    (eps, eps, 1) along the largest; a support whose neighbours all carry the same ``labels``
+    value (the scan line / ring of each reference point) -> isotropic (1, 1, 1). One scan
+    line samples a surface only along the line: on open ground a 16-beam ring is a thin arc
+    whose "normal" points at the neighbouring rings, and since the ring pattern moves with
+    the sensor, trusting it pulls every registration toward zero motion.
     """
     xyz = _check_points(xyz, "points")
     query = xyz if query is None else _check_points(query, "query points")
@@ -165,10 +186,28 @@ def estimate_covariances(
     nb = xyz[idx.reshape(len(query), k_eff)]
     centred = nb - nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", centred, centred) / (k_eff - 1)
+    single = None
+    if labels is not None:  # supports sampled by one scan line only
+        lab = np.asarray(labels)[idx.reshape(len(query), k_eff)]
+        single = np.all(lab == lab[:, :1], axis=1)
+    if mode == "raw" and single is not None and single.any():
+        # isotropic at the support's extent: "somewhere along this scan line", no direction
+        cov[single] = np.eye(3) * np.linalg.eigvalsh(cov[single])[:, 2, None, None]
     if mode == "plane":
         w, v = np.linalg.eigh(cov)
         lam = np.array([plane_epsilon, 1.0, 1.0])
         cov = np.einsum("nij,j,nkj->nik", v, lam, v)
+    elif mode == "shape":
+        w, v = np.linalg.eigh(cov)  # ascending: w[:, 2] is the largest
+        line = w[:, 1] < line_ratio * w[:, 2]
+        lam = np.where(
+            line[:, None], [plane_epsilon, plane_epsilon, 1.0], [plane_epsilon, 1.0, 1.0]
+        )
+        flat = w[:, 2] <= 0
+        if single is not None:
+            flat |= single
+        lam[flat] = 1.0
+        cov = np.einsum("nij,nj,nkj->nik", v, lam, v)
     elif mode != "raw":
         raise ConfigError(f"unknown covariance mode '{mode}'; valid: {', '.join(COVARIANCE_MODES)}")
     cov[:, [0, 1, 2], [0, 1, 2]] += lambda_reg
@@ -200,6 +239,7 @@ class GicpTarget:
             cfg.covariance_mode,
             tree=tree,
             plane_epsilon=cfg.plane_epsilon,
+            line_ratio=cfg.line_ratio,
             threads=cfg.threads,
         )
         return cls(xyz, covs, tree)
@@ -352,6 +392,7 @@ def gicp_align(
             cfg.lambda_reg,
             cfg.covariance_mode,
             plane_epsilon=cfg.plane_epsilon,
+            line_ratio=cfg.line_ratio,
             threads=cfg.threads,
         )
     elif source_covs.shape != (len(src), 3, 3):
