@@ -6,12 +6,13 @@ per-point covariances, eqs. (1)-(5)) against an incrementally updated local map.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.errors import ConfigError
+from slam.features.curvature import covariance_curvature
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.preprocess.sor import SorConfig, apply_sor
@@ -71,6 +72,8 @@ class ImprovedFloam(ScanToMapFrontend):
         self.cfg = cfg or ImprovedFloamConfig()
         super().__init__(self.cfg)
         self.map = VoxelHashMap(self.cfg.map, with_covariances=True)
+        # features are picked without kappa; the correction runs on the downsampled features
+        self._features_no_kappa = replace(self.cfg.features, use_covariance_curvature=False)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
         cfg = self.cfg
@@ -82,9 +85,18 @@ class ImprovedFloam(ScanToMapFrontend):
         extras: dict = {"n_after_sor": int(len(xyz)), "_filtered_xyz": xyz}
 
         t = time.perf_counter()
-        feats = extract_features(xyz, scan.ring, cfg.features)
+        feats = extract_features(xyz, scan.ring, self._features_no_kappa)
         e_idx = feats.edge_idx[voxel_downsample(xyz[feats.edge_idx], cfg.edge_voxel)]
         p_idx = feats.plane_idx[voxel_downsample(xyz[feats.plane_idx], cfg.plane_voxel)]
+        if cfg.features.use_covariance_curvature and len(e_idx) + len(p_idx) > 0:
+            # curvature correction (paper 000, kappa = tr/||.||_F) on the features actually
+            # used: one k-NN query of a few thousand points instead of the whole scan
+            kappa = covariance_curvature(
+                xyz, cfg.features.cov_k, query_idx=np.concatenate([e_idx, p_idx])
+            )
+            n_e = len(e_idx)
+            e_idx = e_idx[~(kappa[:n_e] > cfg.features.kappa_edge_max)]
+            p_idx = p_idx[~(kappa[n_e:] > cfg.features.kappa_plane_max)]
         src = np.concatenate([xyz[e_idx], xyz[p_idx]])
         extras.update(n_edges=int(len(e_idx)), n_planes=int(len(p_idx)))
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
