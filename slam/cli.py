@@ -72,6 +72,7 @@ def run_one(
         disable=quiet,
         dynamic_ncols=True,
         file=sys.stderr,
+        mininterval=0.1 if sys.stderr.isatty() else 10.0,  # logs get a line per 10 s
     )
     last = [0]
 
