@@ -196,14 +196,16 @@ def plot_heatmap(
         ax.set_yticks(range(len(ys)), [str(y) for y in ys])
         ax.set_xlabel(keys[1])
         ax.set_ylabel(keys[0])
+        lo, hi = np.nanmin(data), np.nanmax(data)
         for (i, j), v in np.ndenumerate(data):
+            light = np.isfinite(v) and hi > lo and (v - lo) / (hi - lo) < 0.5  # yellow end
             ax.text(
                 j,
                 i,
                 "-" if np.isnan(v) else f"{v:.3f}",
                 ha="center",
                 va="center",
-                color="white",
+                color="black" if light else "white",
                 fontsize=8,
             )
         fig.colorbar(im, ax=ax, label=f"APE {metric.removeprefix('ape_')} [m]")
