@@ -64,6 +64,22 @@ class Estimate:
     residual_variance: float = 1.0
     extras: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_registration(cls, res, extras: dict) -> Estimate:
+        """From a RegistrationResult; its diagnostics are recorded in ``extras``."""
+        extras.update(
+            iterations=res.iterations,
+            fitness=res.fitness,
+            converged=res.converged,
+            inliers=res.num_inliers,
+        )
+        return cls(
+            res.T_target_source,
+            H=res.H,
+            residual_variance=res.cost / max(res.dof, 1),
+            extras=extras,
+        )
+
 
 def rotation_angle_deg(T: np.ndarray) -> float:
     cos = (np.trace(T[:3, :3]) - 1.0) / 2.0

@@ -72,18 +72,7 @@ class Floam(ScanToMapFrontend):
             e_map = FeatureTarget(self.edge_map.points, self.edge_map.tree())
             p_map = FeatureTarget(self.plane_map.points, self.plane_map.tree())
             res = feature_icp_align(edges, planes, e_map, p_map, T_pred, cfg.registration)
-            est = Estimate(
-                res.T_target_source,
-                H=res.H,
-                residual_variance=res.cost / max(res.dof, 1),
-                extras=extras,
-            )
-            extras.update(
-                iterations=res.iterations,
-                fitness=res.fitness,
-                converged=res.converged,
-                inliers=res.num_inliers,
-            )
+            est = Estimate.from_registration(res, extras)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()

@@ -134,18 +134,7 @@ class ImprovedFloam(ScanToMapFrontend):
             target = GicpTarget(self.map.points, self.map.covs, self.map.tree())
             timings["map_tree_ms"] = (time.perf_counter() - t) * 1e3
             res = gicp_align(src, target, T_pred, rc, source_covs=covs)
-            est = Estimate(
-                res.T_target_source,
-                H=res.H,
-                residual_variance=res.cost / max(res.dof, 1),
-                extras=extras,
-            )
-            extras.update(
-                iterations=res.iterations,
-                fitness=res.fitness,
-                converged=res.converged,
-                inliers=res.num_inliers,
-            )
+            est = Estimate.from_registration(res, extras)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
