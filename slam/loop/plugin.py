@@ -109,8 +109,8 @@ class LoopClosurePlugin:
         consistency_base: float = 3.0
         consistency_ratio: float = 0.1
         consistency_yaw_deg: float = 45.0
-        min_sigma_trans: float = 0.01
-        min_sigma_rot_deg: float = 0.1
+        min_sigma_trans: float = 0.05  # a 16-beam scan-to-scan loop is good to cm, not mm
+        min_sigma_rot_deg: float = 0.5
         max_sigma_ratio: float = 100.0
 
         def __post_init__(self) -> None:
