@@ -141,7 +141,7 @@ class ScanToMapFrontend:
         extras: dict = {"n_points": int(len(scan))}
         skipped = None
         est = None
-        cloud = None
+        filtered = None
         work = self._crop(scan)
         extras["n_after_crop"] = int(len(work))
         if len(work) < self._c.min_points:
@@ -158,10 +158,7 @@ class ScanToMapFrontend:
                 log.warning("frame %d: registration failed (%s); using prediction", scan.index, exc)
                 skipped = f"registration failed: {exc}"
                 est = None
-            t = time.perf_counter()
             filtered = extras.pop("_filtered_xyz", work.xyz)
-            cloud = filtered[voxel_downsample(filtered, self._c.cloud_voxel)]
-            timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
 
         pose = est.pose if est is not None else T_pred
         first = self.n_keyframes == 0
@@ -179,6 +176,13 @@ class ScanToMapFrontend:
         if est is not None and (first or is_new_keyframe(relative, self._c.keyframe)):
             is_kf = True
         info = self._keyframe_information(info_reg, relative)
+        cloud = np.zeros((0, 3))
+        if filtered is not None and (is_kf or first):
+            # only keyframes keep a cloud (the pipeline stores it; the first frame always
+            # becomes one): no voxel pass over the scans in between
+            t = time.perf_counter()
+            cloud = filtered[voxel_downsample(filtered, self._c.cloud_voxel)]
+            timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
         if is_kf:
             self.T_kf = pose.copy()
             self.n_keyframes += 1
@@ -204,6 +208,6 @@ class ScanToMapFrontend:
             is_keyframe=is_kf,
             relative=relative,
             info=info,
-            cloud=cloud if cloud is not None else np.zeros((0, 3)),
+            cloud=cloud,
             extras=extras,
         )

@@ -12,10 +12,10 @@ import numpy as np
 
 from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.errors import ConfigError
-from slam.features.curvature import covariance_curvature
+from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
-from slam.preprocess.sor import SorConfig, apply_sor
+from slam.preprocess.sor import SorConfig, apply_sor, neighbourhoods
 from slam.preprocess.voxel import voxel_downsample
 from slam.registration.gicp import GicpConfig, GicpTarget, estimate_covariances, gicp_align
 from slam.types import Scan
@@ -78,7 +78,9 @@ class ImprovedFloam(ScanToMapFrontend):
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
         cfg = self.cfg
         t = time.perf_counter()
-        keep = apply_sor(scan.xyz, cfg.sor)
+        raw = scan.xyz
+        nbh = neighbourhoods(raw, cfg.sor.k) if cfg.sor.enabled else None
+        keep = apply_sor(raw, cfg.sor, nbh)
         scan = scan.select(keep) if not keep.all() else scan
         xyz = scan.xyz
         timings["sor_ms"] = (time.perf_counter() - t) * 1e3
@@ -91,9 +93,14 @@ class ImprovedFloam(ScanToMapFrontend):
         if cfg.features.use_covariance_curvature and len(e_idx) + len(p_idx) > 0:
             # curvature correction (paper 000, kappa = tr/||.||_F) on the features actually
             # used: one k-NN query of a few thousand points instead of the whole scan
-            kappa = covariance_curvature(
-                xyz, cfg.features.cov_k, query_idx=np.concatenate([e_idx, p_idx])
-            )
+            q = np.concatenate([e_idx, p_idx])
+            k_cov = cfg.features.cov_k
+            if nbh is not None and nbh.idx.shape[1] >= min(k_cov, len(raw)):
+                # the neighbourhoods SOR searched (raw cloud, self + k): no second k-NN
+                q_raw = np.flatnonzero(keep)[q]
+                kappa = kappa_from_neighbours(raw, q_raw, nbh.idx[q_raw, :k_cov])
+            else:
+                kappa = covariance_curvature(xyz, k_cov, query_idx=q)
             n_e = len(e_idx)
             e_idx = e_idx[~(kappa[:n_e] > cfg.features.kappa_edge_max)]
             p_idx = p_idx[~(kappa[n_e:] > cfg.features.kappa_plane_max)]

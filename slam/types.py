@@ -53,7 +53,8 @@ class Odometry:
     pose: T_odom_sensor at the scan stamp. relative: T_prevkf_current, the motion since
     the previous keyframe (identity for the first frame). info: 6x6 information of
     ``relative`` (rotation first), scaled to a plausible covariance. cloud: the scan's
-    points in the sensor frame after deskew/filtering, kept by the pipeline for keyframes.
+    points in the sensor frame after deskew/filtering (voxel-thinned), kept by the pipeline
+    for keyframes; front ends may leave it empty on other frames.
     extras: diagnostics (feature counts, iterations, fitness, degenerate, ...).
     """
 

@@ -50,11 +50,12 @@ def covariance_curvature(
     k_eff = min(k, len(xyz))
     q = np.arange(len(xyz)) if query_idx is None else np.asarray(query_idx, dtype=np.int64)
     idx, _ = knn(xyz, xyz[q], k_eff)
-    return _kappa_from_neighbours(xyz, q, idx)
+    return kappa_from_neighbours(xyz, q, idx)
 
 
-def _kappa_from_neighbours(xyz: np.ndarray, q: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """kappa of xyz[q] from its (M, k) neighbour indices."""
+def kappa_from_neighbours(xyz: np.ndarray, q: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """kappa of xyz[q] (M,) from its (M, k) neighbour indices into xyz (itself included),
+    e.g. the neighbourhoods SOR already searched."""
     k_eff = idx.shape[1]
     idx_t = np.ascontiguousarray(idx.T)  # (k, M): reductions over k become row adds
     cols = [np.ascontiguousarray(xyz[:, a]) for a in range(3)]

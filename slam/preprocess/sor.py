@@ -52,24 +52,44 @@ def _check_xyz(xyz: np.ndarray) -> np.ndarray:
     return xyz
 
 
+@dataclass
+class Neighbourhoods:
+    """The one k-NN query SOR makes, kept for reuse (e.g. the curvature correction).
+
+    idx: (N, k+1) indices of each point's nearest points, itself first; dist: (N, k)
+    distances (m) to the k nearest other points, ascending.
+    """
+
+    idx: np.ndarray
+    dist: np.ndarray
+
+
+def neighbourhoods(xyz: np.ndarray, k: int) -> Neighbourhoods:
+    """k nearest other points of every point: one KD-tree build and one batch query."""
+    k_eff = min(k, len(xyz) - 1)
+    idx, dist = knn(xyz, xyz, k_eff + 1)
+    return Neighbourhoods(idx, dist[:, 1:])
+
+
 def knn_distances(xyz: np.ndarray, k: int) -> np.ndarray:
     """(N, k) distances (m) to the k nearest other points, ascending; one KD-tree query."""
-    k_eff = min(k, len(xyz) - 1)
-    _, dist = knn(xyz, xyz, k_eff + 1)
-    return dist[:, 1:]
+    return neighbourhoods(xyz, k).dist
 
 
-def classic_sor(xyz: np.ndarray, k: int = 10, alpha: float = 1.0) -> np.ndarray:
+def classic_sor(
+    xyz: np.ndarray, k: int = 10, alpha: float = 1.0, *, dist: np.ndarray | None = None
+) -> np.ndarray:
     """PCL/open3d statistical outlier removal: keep d_i <= mu + alpha*sigma.
 
     d_i is the mean distance (m) to the k nearest neighbours; mu and sigma (ddof=1) are over
     all points. PCL semantics (self excluded); open3d counts the point itself, so this equals
     open3d ``remove_statistical_outlier(nb_neighbors=k + 1, std_ratio=alpha)`` exactly.
+    dist: the (N, k) neighbour distances when already known (``neighbourhoods``).
     """
     xyz = _check_xyz(xyz)
     if len(xyz) <= 2:
         return np.ones(len(xyz), dtype=bool)
-    d = knn_distances(xyz, k).mean(axis=1)
+    d = (knn_distances(xyz, k) if dist is None else dist).mean(axis=1)
     return d <= d.mean() + alpha * d.std(ddof=1)
 
 
@@ -81,6 +101,7 @@ def weighted_sor(
     *,
     range_adaptive: bool = False,
     max_density_ratio: float = 1.0,
+    dist: np.ndarray | None = None,
 ) -> np.ndarray:
     """Weighted density-adaptive SOR (paper 000, eqs. (4)-(9)); returns a keep-mask.
 
@@ -104,12 +125,13 @@ def weighted_sor(
     distance of point i by its range (metres -> radians) first; that makes the d_i of all
     surfaces nearly equal, so sigma is set by the outliers themselves and removal drops
     (about 86 % vs 96 % of injected outliers at 0.5 %), hence it is off by default.
+    dist: the (N, k) neighbour distances when already known (``neighbourhoods``).
     """
     xyz = _check_xyz(xyz)
     n = len(xyz)
     if n <= 2:
         return np.ones(n, dtype=bool)
-    dist = knn_distances(xyz, k)
+    dist = knn_distances(xyz, k) if dist is None else dist
     if range_adaptive:
         rng = np.maximum(np.linalg.norm(xyz, axis=1), 0.1)
         dist = dist / rng[:, None]
@@ -125,12 +147,14 @@ def weighted_sor(
     return d <= theta
 
 
-def apply_sor(xyz: np.ndarray, cfg: SorConfig) -> np.ndarray:
-    """Keep-mask from the configured method; all True when ``cfg.enabled`` is False."""
+def apply_sor(xyz: np.ndarray, cfg: SorConfig, nbh: Neighbourhoods | None = None) -> np.ndarray:
+    """Keep-mask from the configured method; all True when ``cfg.enabled`` is False.
+    nbh: the k-NN of ``xyz`` (``neighbourhoods(xyz, cfg.k)``) when the caller keeps it."""
     if not cfg.enabled:
         return np.ones(len(xyz), dtype=bool)
+    dist = None if nbh is None else nbh.dist
     if cfg.method == "classic":
-        return classic_sor(xyz, cfg.k, cfg.alpha)
+        return classic_sor(xyz, cfg.k, cfg.alpha, dist=dist)
     if cfg.method == "weighted":
         return weighted_sor(
             xyz,
@@ -139,5 +163,6 @@ def apply_sor(xyz: np.ndarray, cfg: SorConfig) -> np.ndarray:
             cfg.delta,
             range_adaptive=cfg.range_adaptive,
             max_density_ratio=cfg.max_density_ratio,
+            dist=dist,
         )
     raise ConfigError(f"unknown SOR method '{cfg.method}'; valid: {', '.join(SOR_METHODS)}")
