@@ -87,7 +87,13 @@ class ImprovedFloam(ScanToMapFrontend):
         extras: dict = {"n_after_sor": int(len(xyz)), "_filtered_xyz": xyz}
 
         t = time.perf_counter()
-        feats = extract_features(xyz, scan.ring, self._features_no_kappa)
+        feats = extract_features(
+            xyz,
+            scan.ring,
+            self._features_no_kappa,
+            azimuth_order=self._ring_order_key(scan),
+            top_picks=False,
+        )
         e_idx = feats.edge_idx[voxel_downsample(xyz[feats.edge_idx], cfg.edge_voxel)]
         p_idx = feats.plane_idx[voxel_downsample(xyz[feats.plane_idx], cfg.plane_voxel)]
         if cfg.features.use_covariance_curvature and len(e_idx) + len(p_idx) > 0:

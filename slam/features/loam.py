@@ -243,12 +243,16 @@ def extract_features(
     cfg: FeatureConfig | None = None,
     *,
     azimuth_order: np.ndarray | None = None,
+    top_picks: bool = True,
 ) -> Features:
     """LOAM edge and plane features of one sweep.
 
     ring: (N,) beam index per point (negative = skip); None -> ``ring_from_elevation``.
     azimuth_order: optional (N,) sort key used instead of the azimuth atan2(y, x) to order the
     points of a ring (e.g. per-point firing time); it is a key, not a permutation.
+    top_picks: also select sharp_idx/flat_idx (A-LOAM's few strongest per sector, for
+    frame-to-frame matching); scan-to-map front ends use only edge_idx/plane_idx and pass
+    False (the flat selection is a third of the cost).
     Curvature c_i = ||sum_{|j|<=w, j!=0} (p_{i+j} - p_i)||^2 (A-LOAM). With
     use_covariance_curvature, kappa (paper 000) is computed on the input cloud (expected to be
     SOR-filtered; neighbours searched in all of it, kappa only for the points a decision needs)
@@ -355,7 +359,7 @@ def extract_features(
     sel = sel[edge_ok[sel]]  # a rejected pseudo-edge is not replaced by its neighbours
     rank = _group_rank(sector[sel], cv[sel])
     less_sharp = sel[rank < cfg.max_less_sharp]
-    sharp = sel[rank < cfg.max_sharp]
+    sharp = sel[rank < cfg.max_sharp] if top_picks else sel[:0]
     is_edge = np.zeros(n, dtype=bool)
     is_edge[less_sharp] = True
     nb, same = _neighbours(less_sharp, run, w)
@@ -364,7 +368,7 @@ def extract_features(
 
     # flats: greedy NMS by increasing c among points not suppressed by edges
     cand = plane_cand & ~picked & ~near_edge & plane_ok
-    flat = _sector_top_picks(-cv, cand, run, w, sector, cfg.max_flat)
+    flat = _sector_top_picks(-cv, cand, run, w, sector, cfg.max_flat) if top_picks else sel[:0]
     less_flat = np.flatnonzero(plane_cand & ~is_edge & plane_ok)
 
     def back(i: np.ndarray) -> np.ndarray:

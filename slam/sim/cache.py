@@ -19,7 +19,7 @@ import tempfile
 from pathlib import Path
 
 from slam.sim.lidar import LidarModel
-from slam.sim.simulate import META_NAME, SimResult, load_result, simulate
+from slam.sim.simulate import META_NAME, SimResult, effective_model, load_result, simulate
 
 SIM_VERSION = 1  # bump when the simulated data change meaning
 
@@ -73,7 +73,8 @@ def sequence_key(
     pedestrians: bool,
     model: LidarModel | None = None,
 ) -> str:
-    """Folder name of a sequence in the cache."""
+    """Folder name of a sequence in the cache; the key holds the effective sensor model
+    (the scene's own when ``model`` is None)."""
     spec = {
         "version": SIM_VERSION,
         "source": _source_digest(),
@@ -82,7 +83,7 @@ def sequence_key(
         "fmt": fmt,
         "seed": seed,
         "pedestrians": pedestrians,
-        "model": dataclasses.asdict(model or LidarModel()),
+        "model": dataclasses.asdict(effective_model(scene, model)),
     }
     digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
     return f"{scene}-{'full' if frames is None else frames}-{seed}-{digest}"

@@ -2,6 +2,10 @@
 
 Each builder returns a :class:`Part` (vertices (V,3) m, triangles (F,3), reflectivity 0..1).
 A :class:`MeshBuilder` collects parts; a scene is a few lines of builder calls.
+
+A part with ``extinction > 0`` is a porous volume (foliage): a closed mesh that rays enter
+and, with probability 1 - exp(-extinction * depth), return from inside (see
+:meth:`slam.sim.scene.Scene.cast`). :func:`porous` turns a solid part into one.
 """
 
 from __future__ import annotations
@@ -23,15 +27,63 @@ FOLIAGE = 0.25
 BARK = 0.2
 SOIL = 0.12
 CLOTH = 0.4
+GRASS = 0.3
+
+# Extinction coefficients (1/m) of porous vegetation: k = G * LAD with projection factor
+# G ~ 0.5 and leaf area density LAD ~ 1-4 m^2/m^3 (tree crowns) or more (clipped hedges).
+CROWN_EXTINCTION = 0.9
+HEDGE_EXTINCTION = 3.0
 
 
 @dataclass
 class Part:
-    """A triangle mesh with one reflectivity."""
+    """A triangle mesh with one reflectivity. extinction > 0 (1/m): a porous volume."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     reflectivity: float
+    extinction: float = 0.0
+
+
+def porous(part: Part | list[Part], extinction: float = CROWN_EXTINCTION) -> Part | list[Part]:
+    """The same closed mesh(es) as a porous volume with ``extinction`` (1/m)."""
+    if isinstance(part, list):
+        return [Part(p.vertices, p.triangles, p.reflectivity, extinction) for p in part]
+    return Part(part.vertices, part.triangles, part.reflectivity, extinction)
+
+
+def ellipsoid(
+    center, radii, reflectivity: float = FOLIAGE, resolution: int = 10, yaw: float = 0.0
+) -> Part:
+    """Ellipsoid (m) with semi-axes ``radii`` (rx, ry, rz), rotated by ``yaw`` about z."""
+    mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution)
+    v = np.asarray(mesh.vertices, dtype=float) * np.asarray(radii, dtype=float)
+    v = v @ _rot_z(yaw).T + np.asarray(center, dtype=float)
+    return Part(v, np.asarray(mesh.triangles, dtype=np.int32), reflectivity)
+
+
+def height_field(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, reflectivity=ASPHALT
+) -> Part | list[Part]:
+    """Terrain mesh over the grid ``x`` (nx,) by ``y`` (ny,) with heights ``z`` (ny, nx), m,
+    facing up. ``reflectivity``: a number, or (ny-1, nx-1) per grid cell, in which case one
+    part per distinct value is returned."""
+    xx, yy = np.meshgrid(np.asarray(x, float), np.asarray(y, float))
+    v = np.column_stack([xx.ravel(), yy.ravel(), np.asarray(z, float).ravel()])
+    nx = len(x)
+    i, j = np.meshgrid(np.arange(len(y) - 1), np.arange(nx - 1), indexing="ij")
+    a = (i * nx + j).ravel()
+    quads = np.column_stack([a, a + 1, a + nx + 1, a + nx])
+    if np.ndim(reflectivity) == 0:
+        tris = np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]).astype(np.int32)
+        return Part(v, tris, float(reflectivity))
+    cell = np.asarray(reflectivity, dtype=float).ravel()
+    parts = []
+    for value in np.unique(cell):
+        q = quads[cell == value]
+        tris = np.vstack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]).astype(np.int32)
+        parts.append(Part(v, tris, float(value)))
+    return parts
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -177,12 +229,24 @@ class MeshBuilder:
         return self
 
     def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """vertices (V,3) float64, triangles (F,3) int32, reflectivity (F,) float64."""
-        verts, tris, refl = [], [], []
-        offset = 0
-        for p in self.parts:
-            verts.append(p.vertices)
-            tris.append(p.triangles + offset)
-            refl.append(np.full(len(p.triangles), p.reflectivity))
-            offset += len(p.vertices)
-        return np.concatenate(verts), np.concatenate(tris), np.concatenate(refl)
+        """The solid parts: vertices (V,3) float64, triangles (F,3) int32, reflectivity
+        (F,) float64."""
+        return _merge([p for p in self.parts if p.extinction <= 0])[:3]
+
+    def build_porous(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The porous parts as (vertices, triangles, reflectivity, extinction (F,) 1/m), or
+        None when there are none."""
+        parts = [p for p in self.parts if p.extinction > 0]
+        return _merge(parts) if parts else None
+
+
+def _merge(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    verts, tris, refl, ext = [], [], [], []
+    offset = 0
+    for p in parts:
+        verts.append(p.vertices)
+        tris.append(p.triangles + offset)
+        refl.append(np.full(len(p.triangles), p.reflectivity))
+        ext.append(np.full(len(p.triangles), p.extinction))
+        offset += len(p.vertices)
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(refl), np.concatenate(ext)

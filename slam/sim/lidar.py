@@ -8,6 +8,12 @@ which is what a driver publishes; undoing the distortion needs the per-point ``t
 Rotation is clockwise seen from above (like Velodyne): the sweep starts pointing
 backwards (azimuth +pi) and passes left, front, right. Points are in firing order
 (column-major, rings bottom -> top within a column), as the Velodyne driver emits them.
+
+Optional error sources (all off by default, see :meth:`LidarModel.realistic`): per-beam
+calibration errors (the ray really travels along a slightly different direction than the
+driver assumes, and its range has a per-beam offset), range noise growing with range, and
+mixed pixels (a return at a depth edge lands between foreground and background).
+Porous vegetation is a property of the scene (see :class:`slam.sim.scene.Scene`).
 """
 
 from __future__ import annotations
@@ -30,6 +36,20 @@ class LidarModel:
 
     range_sigma: std-dev of Gaussian range noise (m). spurious_fraction: probability that
     a return is replaced by a point at a random range along its ray, floating in air.
+
+    Realism options (all 0 = off by default):
+
+    range_sigma_per_m: range noise grows with range, sigma = range_sigma + this * r.
+    calib_elevation_deg, calib_azimuth_deg, calib_range_m: std-dev of per-beam calibration
+    errors, drawn once per sensor from ``calibration_seed`` (see :meth:`calibration`). The
+    ray travels along the true (perturbed) direction; the driver publishes the point along
+    the nominal direction at the measured range plus the beam's range offset.
+    mixed_pixel_prob: probability that a return at a depth discontinuity between
+    neighbouring columns of the same beam (range gap in [mixed_pixel_min_gap,
+    mixed_pixel_max_gap] m) is a mixed pixel: the beam footprint (divergence ~3 mrad)
+    straddles the edge and the echoes of foreground and background merge into one at a
+    random range in between (a "veil" point floating in air behind the edge). Larger gaps
+    give two separable echoes (the strongest wins), smaller ones are the same surface.
     """
 
     beams: int = 16
@@ -40,6 +60,45 @@ class LidarModel:
     min_range: float = 0.3
     range_sigma: float = 0.01
     spurious_fraction: float = 0.005
+    range_sigma_per_m: float = 0.0
+    calib_elevation_deg: float = 0.0
+    calib_azimuth_deg: float = 0.0
+    calib_range_m: float = 0.0
+    calibration_seed: int = 0
+    mixed_pixel_prob: float = 0.0
+    mixed_pixel_min_gap: float = 0.3
+    mixed_pixel_max_gap: float = 5.0
+
+    @classmethod
+    def realistic(cls, calibration_seed: int = 0, **overrides) -> LidarModel:
+        """A VLP-16 with the error sources of a real, factory-calibrated unit.
+
+        Values (plausible, not a particular unit):
+        - range accuracy: the VLP-16 datasheet states +-3 cm typical; here 1.2 cm + 0.2 mm/m
+          (1-sigma 1.4 cm at 10 m, 2.2 cm at 50 m).
+        - per-beam calibration: uncalibrated / factory-calibrated Velodynes show angular
+          errors of ~0.1-0.2 deg per laser and range offsets of a few cm (Glennie & Lichti
+          2010, HDL-64E; Glennie et al. 2016, VLP-16 calibration and stability): 0.1 deg
+          elevation, 0.1 deg azimuth, 2 cm range (1-sigma per beam).
+        - mixed pixels: beam divergence ~3 mrad is about one column step (0.2 deg = 3.5
+          mrad) at 10 Hz, so edge footprints often straddle; 30 % of edge returns mix when
+          the surfaces are 0.3-5 m apart along the ray.
+        - spurious returns (dust, multipath) 0.5 % as in the default model.
+        """
+        values = dict(
+            range_sigma=0.012,
+            range_sigma_per_m=0.0002,
+            spurious_fraction=0.005,
+            calib_elevation_deg=0.1,
+            calib_azimuth_deg=0.1,
+            calib_range_m=0.02,
+            calibration_seed=calibration_seed,
+            mixed_pixel_prob=0.3,
+            mixed_pixel_min_gap=0.3,
+            mixed_pixel_max_gap=5.0,
+        )
+        values.update(overrides)
+        return cls(**values)
 
     def __post_init__(self) -> None:
         if self.beams < 1 or self.columns < 1:
@@ -50,6 +109,38 @@ class LidarModel:
             raise InputError("LidarModel needs rate_hz > 0 and 0 <= min_range < max_range")
         if not 0.0 <= self.spurious_fraction < 1.0 or self.range_sigma < 0:
             raise InputError("LidarModel needs 0 <= spurious_fraction < 1 and range_sigma >= 0")
+        if min(self.range_sigma_per_m, self.calib_elevation_deg, self.calib_azimuth_deg) < 0:
+            raise InputError("LidarModel noise and calibration std-devs must be >= 0")
+        if self.calib_range_m < 0:
+            raise InputError("LidarModel.calib_range_m must be >= 0")
+        if not 0.0 <= self.mixed_pixel_prob <= 1.0:
+            raise InputError("LidarModel needs 0 <= mixed_pixel_prob <= 1")
+        if not 0.0 <= self.mixed_pixel_min_gap < self.mixed_pixel_max_gap:
+            raise InputError("LidarModel needs 0 <= mixed_pixel_min_gap < mixed_pixel_max_gap")
+
+    @property
+    def has_calibration_error(self) -> bool:
+        """False when the nominal rays and ranges are exact (no calibration error)."""
+        return bool(self.calib_elevation_deg or self.calib_azimuth_deg or self.calib_range_m)
+
+    def calibration(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-beam calibration errors: elevation (rad), azimuth (rad) and range (m)
+        offsets, each (beams,), drawn from ``calibration_seed`` (fixed for a sensor)."""
+        rng = np.random.default_rng([self.calibration_seed, 1601])
+        z = rng.standard_normal((3, self.beams))
+        return (
+            np.deg2rad(self.calib_elevation_deg) * z[0],
+            np.deg2rad(self.calib_azimuth_deg) * z[1],
+            self.calib_range_m * z[2],
+        )
+
+    def true_directions(self) -> np.ndarray:
+        """(columns, beams, 3) unit directions the rays really travel (sensor frame): the
+        nominal ones perturbed by the per-beam elevation and azimuth errors."""
+        if self.calib_elevation_deg == 0 and self.calib_azimuth_deg == 0:
+            return self.directions()
+        d_el, d_az, _ = self.calibration()
+        return _unit_dirs(self.azimuths()[:, None] + d_az[None, :], self.elevations() + d_el)
 
     @property
     def period(self) -> float:
@@ -70,32 +161,43 @@ class LidarModel:
 
     def directions(self) -> np.ndarray:
         """(columns, beams, 3) unit ray directions in the sensor frame."""
-        az = self.azimuths()[:, None]
-        el = self.elevations()[None, :]
-        ce = np.cos(el)
-        return np.stack(
-            np.broadcast_arrays(ce * np.cos(az), ce * np.sin(az), np.sin(el)), axis=-1
-        ).astype(np.float64)
+        return _unit_dirs(self.azimuths()[:, None], self.elevations())
+
+
+def _unit_dirs(az: np.ndarray, el: np.ndarray) -> np.ndarray:
+    """(C, B, 3) unit vectors from azimuths (C, 1) or (C, B) and elevations (B,) (rad)."""
+    el = el[None, :]
+    ce = np.cos(el)
+    return np.stack(
+        np.broadcast_arrays(ce * np.cos(az), ce * np.sin(az), np.sin(el)), axis=-1
+    ).astype(np.float64)
 
 
 @dataclass
 class RayHits:
     """First hits of a batch of rays: range (m, inf = none), reflectivity (0..1), cos of
-    incidence, and a dynamic flag (hit a moving object)."""
+    incidence, a dynamic flag (hit a moving object) and a porous flag (a return from
+    inside porous vegetation; None = no porous geometry)."""
 
     range: np.ndarray
     reflectivity: np.ndarray
     cos_incidence: np.ndarray
     dynamic: np.ndarray
+    porous: np.ndarray | None = None
 
 
 @dataclass
 class ScanTruth:
     """What the simulator knows about each point of a scan (same order as the Scan).
 
-    true_range: noise-free range (m) along the ray. spurious: the point is a fake return.
-    dynamic: the point lies on a pedestrian. column: firing column of the point.
+    true_range: noise-free range (m) along the ray (to the first surface, or to the return
+    inside porous vegetation). spurious: the point is a fake return. dynamic: the point
+    lies on a pedestrian. column: firing column of the point.
     T_world_sensor_columns: (columns, 4, 4) sensor pose at each column's time.
+    mixed: the point is a mixed pixel (between foreground and background at an edge).
+    porous: the return comes from inside porous vegetation.
+    ray_dir: (N, 3) direction the ray really travelled (sensor frame; differs from the
+    published direction with calibration errors): the true hit is ray_dir * true_range.
     """
 
     true_range: np.ndarray
@@ -103,6 +205,9 @@ class ScanTruth:
     dynamic: np.ndarray
     column: np.ndarray
     T_world_sensor_columns: np.ndarray
+    mixed: np.ndarray | None = None
+    porous: np.ndarray | None = None
+    ray_dir: np.ndarray | None = None
 
 
 def simulate_scan_truth(
@@ -124,12 +229,18 @@ def simulate_scan_truth(
     rng = rng if rng is not None else np.random.default_rng(0)
     col_t = model.column_times()
     T = np.asarray(pose_at(t0 + col_t), dtype=np.float64).reshape(model.columns, 4, 4)
-    dirs_s = model.directions()  # (C, B, 3)
-    dirs_w = np.matmul(dirs_s, T[:, :3, :3].transpose(0, 2, 1))
+    dirs_s = model.directions()  # (C, B, 3) nominal: what the driver publishes along
+    ray_s = model.true_directions() if model.has_calibration_error else dirs_s
+    dirs_w = np.matmul(ray_s, T[:, :3, :3].transpose(0, 2, 1))
     origins = np.broadcast_to(T[:, None, :3, 3], dirs_w.shape)
     times = np.broadcast_to((t0 + col_t - time_offset)[:, None], dirs_w.shape[:2])
+    cast_kw = {"rng": rng} if getattr(scene, "porous_vertices", None) is not None else {}
     hits = scene.cast(
-        origins.reshape(-1, 3), dirs_w.reshape(-1, 3), times.reshape(-1), group=model.beams
+        origins.reshape(-1, 3),
+        dirs_w.reshape(-1, 3),
+        times.reshape(-1),
+        group=model.beams,
+        **cast_kw,
     )
 
     true_r = hits.range
@@ -137,12 +248,24 @@ def simulate_scan_truth(
     idx = np.flatnonzero(valid)  # firing order: column-major, ring bottom -> top
     r_true = true_r[idx]
     n = idx.size
-    r = r_true + rng.normal(0.0, model.range_sigma, n) if model.range_sigma > 0 else r_true.copy()
+    mixed = np.zeros(n, dtype=bool)
+    r_mix = r_true
+    if model.mixed_pixel_prob > 0:
+        mixed, r_mix = _mixed_pixels(true_r, valid, hits.porous, idx, model, rng)
+    if model.range_sigma_per_m > 0:
+        sigma = model.range_sigma + model.range_sigma_per_m * r_mix
+        r = r_mix + rng.standard_normal(n) * sigma
+    elif model.range_sigma > 0:
+        r = r_mix + rng.normal(0.0, model.range_sigma, n)
+    else:
+        r = r_mix.copy()
     refl = hits.reflectivity[idx]
     cosi = np.abs(hits.cos_incidence[idx])
     # Intensity 0..255 like a Velodyne: reflectivity x incidence with mild range falloff.
     intensity = 255.0 * refl * (0.35 + 0.65 * cosi) / (1.0 + (r_true / 60.0) ** 2)
     intensity = np.clip(intensity + rng.normal(0.0, 1.5, n), 0.0, 255.0)
+    if mixed.any():
+        intensity[mixed] *= 0.5  # the pulse energy is split between two surfaces
 
     # Spurious returns: a random point along the ray, >= 1 m in front of the true surface.
     # Drawn among returns far enough away so that the overall rate matches the model.
@@ -154,15 +277,19 @@ def simulate_scan_truth(
     if k:
         r[spurious] = lo + rng.random(k) * (r_true[spurious] - 1.0 - lo)
         intensity[spurious] = rng.random(k) * _SPURIOUS_INTENSITY_MAX
+    ring = idx % model.beams
+    if model.calib_range_m > 0:
+        r = r + model.calibration()[2][ring]  # the beam's range offset
     r = np.clip(r, model.min_range, model.max_range)
 
     xyz = dirs_s.reshape(-1, 3)[idx] * r[:, None]
     column = (idx // model.beams).astype(np.int32)
+    porous = hits.porous[idx] if hits.porous is not None else np.zeros(n, dtype=bool)
     scan = Scan(
         stamp=float(t0),
         xyz=xyz,
         intensity=intensity.astype(np.float32),
-        ring=(idx % model.beams).astype(np.int16),
+        ring=ring.astype(np.int16),
         time=col_t[column].astype(np.float64),
     )
     truth = ScanTruth(
@@ -171,8 +298,55 @@ def simulate_scan_truth(
         dynamic=hits.dynamic[idx] & ~spurious,
         column=column,
         T_world_sensor_columns=T,
+        mixed=mixed & ~spurious,
+        porous=porous & ~spurious,
+        ray_dir=ray_s.reshape(-1, 3)[idx],
     )
     return scan, truth
+
+
+def _mixed_pixels(
+    true_r: np.ndarray,
+    valid: np.ndarray,
+    porous: np.ndarray | None,
+    idx: np.ndarray,
+    model: LidarModel,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mixed pixels at depth edges: (n,) flags and ranges of the valid returns ``idx``.
+
+    A return is at an edge when the return of the same beam in a neighbouring column (the
+    previous or next azimuth step) differs by a gap in [min_gap, max_gap]; with
+    probability ``mixed_pixel_prob`` its range becomes a uniform mix between its own and
+    that neighbour's (the larger gap if both neighbours qualify). Pairs of two foliage
+    returns (``porous`` (M,)) do not count: those are scattered in depth already."""
+    C, B = model.columns, model.beams
+    grid = np.where(valid, true_r, np.nan).reshape(C, B)
+    leafy = np.zeros((C, B), dtype=bool) if porous is None else porous.reshape(C, B)
+    best = np.zeros((C, B))  # signed gap to the chosen neighbour (0 = none)
+    for shift in (1, -1):
+        nb = np.full((C, B), np.nan)
+        nb_leafy = np.zeros((C, B), dtype=bool)
+        if shift == 1:
+            nb[1:], nb_leafy[1:] = grid[:-1], leafy[:-1]
+        else:
+            nb[:-1], nb_leafy[:-1] = grid[1:], leafy[1:]
+        gap = nb - grid
+        with np.errstate(invalid="ignore"):
+            ok = (np.abs(gap) >= model.mixed_pixel_min_gap) & (
+                np.abs(gap) <= model.mixed_pixel_max_gap
+            )
+            better = ok & ~(leafy & nb_leafy) & (np.abs(gap) > np.abs(best))
+        best = np.where(better, gap, best)
+    gap = best.reshape(-1)[idx]
+    edge = np.flatnonzero(gap != 0)
+    mixed = np.zeros(idx.size, dtype=bool)
+    r = true_r[idx].copy()
+    if edge.size:
+        sel = edge[rng.random(edge.size) < model.mixed_pixel_prob]
+        mixed[sel] = True
+        r[sel] += rng.uniform(0.05, 0.95, sel.size) * gap[sel]
+    return mixed, r
 
 
 def simulate_scan(

@@ -1,7 +1,14 @@
-"""A ray-castable scene: static triangle mesh (open3d RaycastingScene) + walking pedestrians.
+"""A ray-castable scene: static triangle mesh (open3d RaycastingScene) + walking pedestrians
++ optional porous vegetation.
 
 Pedestrians are boxes intersected analytically (slab test) at each ray's own time, so a
 person walking past is as distorted as it would be in a real sweep.
+
+Porous vegetation (tree crowns, hedges) is a second mesh of closed volumes with an
+extinction coefficient k (1/m): a ray inside such a volume returns within depth d with
+probability 1 - exp(-k d) (Beer-Lambert), at a random depth; otherwise it passes through.
+Tree crowns thus give the sparse, scattered returns of real foliage, and what stands
+behind them is partly visible.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import open3d as o3d
 
 from slam.errors import InputError
 from slam.sim.geometry import CLOTH, MeshBuilder, Part
-from slam.sim.lidar import RayHits
+from slam.sim.lidar import LidarModel, RayHits
 from slam.sim.trajectory import Trajectory
 
 
@@ -22,6 +29,7 @@ class Pedestrian:
     """A box walking back and forth between xy ``p0`` and ``p1`` (m) at ``speed`` (m/s).
 
     size: (along, across, height) m. phase: distance (m) already walked at t = 0.
+    z: ground height (m) at p0 and p1 (linear in between), for uneven terrain.
     """
 
     p0: tuple[float, float]
@@ -29,15 +37,19 @@ class Pedestrian:
     speed: float = 1.2
     size: tuple[float, float, float] = (0.5, 0.5, 1.7)
     phase: float = 0.0
+    z: tuple[float, float] = (0.0, 0.0)
 
     def position(self, times: np.ndarray) -> np.ndarray:
-        """(M,3) centre of the box footprint on the ground (z = 0) at ``times`` (s)."""
+        """(M,3) centre of the box footprint on the ground at ``times`` (s)."""
         p0, p1 = np.asarray(self.p0, dtype=float), np.asarray(self.p1, dtype=float)
         length = float(np.hypot(*(p1 - p0)))
         u = np.mod(self.phase + self.speed * np.asarray(times, dtype=float), 2 * length)
         d = np.where(u < length, u, 2 * length - u)
         xy = p0 + np.outer(d / length, p1 - p0)
-        return np.column_stack([xy, np.zeros(len(d))])
+        z = np.zeros(len(d))
+        if self.z[0] or self.z[1]:
+            z = self.z[0] + (d / length) * (self.z[1] - self.z[0])
+        return np.column_stack([xy, z])
 
     @property
     def yaw(self) -> float:
@@ -72,7 +84,7 @@ class Pedestrian:
         c, s = np.cos(self.yaw), np.sin(self.yaw)
         R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> box
         centre = self.position(times[sel])
-        centre[:, 2] = half[2]
+        centre[:, 2] += half[2]
         o3 = (origins[sel] - centre) @ R.T
         d = dirs[sel] @ R.T
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -96,6 +108,9 @@ class Scene:
 
     loop_max_radius: a sensible Scan Context max radius (m). revisit_radius: two ground
     truth poses closer than this (m) are "the same place" for loop-closure evaluation.
+    porous_*: the porous vegetation mesh (closed volumes), per-triangle reflectivity and
+    extinction (1/m); None = no porous geometry. sensor: the LiDAR model this scene is
+    simulated with when none is given (None = the default :class:`LidarModel`).
     """
 
     name: str
@@ -107,12 +122,35 @@ class Scene:
     loop_max_radius: float = 30.0
     revisit_radius: float = 3.0
     description: str = ""
+    porous_vertices: np.ndarray | None = None
+    porous_triangles: np.ndarray | None = None
+    porous_reflectivity: np.ndarray | None = None
+    porous_extinction: np.ndarray | None = None
+    sensor: LidarModel | None = None
     _raycaster: o3d.t.geometry.RaycastingScene | None = field(default=None, init=False, repr=False)
+    _porous_caster: o3d.t.geometry.RaycastingScene | None = field(
+        default=None, init=False, repr=False
+    )
 
     @classmethod
     def from_parts(cls, name: str, parts: list[Part], **kwargs) -> Scene:
-        """A scene from primitive parts (see :mod:`slam.sim.geometry`)."""
-        v, t, r = MeshBuilder(list(parts)).build()
+        """A scene from primitive parts (see :mod:`slam.sim.geometry`); parts with
+        extinction > 0 become porous volumes."""
+        return cls.from_builder(name, MeshBuilder(list(parts)), **kwargs)
+
+    @classmethod
+    def from_builder(cls, name: str, builder: MeshBuilder, **kwargs) -> Scene:
+        """A scene from the solid and porous parts collected by ``builder``."""
+        v, t, r = builder.build()
+        porous = builder.build_porous()
+        if porous is not None:
+            pv, pt, pr, pe = porous
+            kwargs.update(
+                porous_vertices=pv,
+                porous_triangles=pt,
+                porous_reflectivity=pr,
+                porous_extinction=pe,
+            )
         return cls(name, v, t, r, **kwargs)
 
     @property
@@ -129,13 +167,15 @@ class Scene:
     @property
     def raycaster(self) -> o3d.t.geometry.RaycastingScene:
         if self._raycaster is None:
-            mesh = o3d.t.geometry.TriangleMesh()
-            mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
-            mesh.triangle.indices = o3d.core.Tensor(self.triangles.astype(np.int32))
-            rc = o3d.t.geometry.RaycastingScene()
-            rc.add_triangles(mesh)
-            self._raycaster = rc
+            self._raycaster = _raycasting_scene(self.vertices, self.triangles)
         return self._raycaster
+
+    @property
+    def porous_caster(self) -> o3d.t.geometry.RaycastingScene | None:
+        """Raycaster of the porous vegetation (None without)."""
+        if self._porous_caster is None and self.porous_vertices is not None:
+            self._porous_caster = _raycasting_scene(self.porous_vertices, self.porous_triangles)
+        return self._porous_caster
 
     def mesh(self) -> o3d.geometry.TriangleMesh:
         """The static scene as a legacy open3d mesh (for viewing / export)."""
@@ -151,27 +191,104 @@ class Scene:
         *,
         pedestrians: bool = True,
         group: int = 1,
+        rng: np.random.Generator | None = None,
     ) -> RayHits:
         """First hits of unit rays (M,3) in the world frame at scene ``times`` (M,) s.
 
         group: consecutive rays that share origin and time (beams of a column), for speed.
+        rng: draws the returns inside porous vegetation (only used when the scene has some;
+        default: a fixed seed).
         """
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
         out = self.raycaster.cast_rays(o3d.core.Tensor(rays))
-        rng = out["t_hit"].numpy().astype(np.float64)
+        dist = out["t_hit"].numpy().astype(np.float64)
         prim = out["primitive_ids"].numpy().astype(np.int64)
         normals = out["primitive_normals"].numpy().astype(np.float64)
-        hit = np.isfinite(rng)
-        refl = np.zeros(len(rng))
+        hit = np.isfinite(dist)
+        refl = np.zeros(len(dist))
         refl[hit] = self.reflectivity[prim[hit]]
         cos_inc = np.abs(np.sum(normals * dirs, axis=1))
-        dynamic = np.zeros(len(rng), dtype=bool)
+        porous = None
+        if self.porous_caster is not None:
+            porous = self._cast_porous(origins, dirs, dist, refl, cos_inc, rng)
+        dynamic = np.zeros(len(dist), dtype=bool)
         if pedestrians and self.pedestrians and times is not None:
             for ped in self.pedestrians:
                 d, c = ped.intersect(origins, dirs, times, group)
-                closer = d < rng
-                rng[closer] = d[closer]
+                closer = d < dist
+                dist[closer] = d[closer]
                 refl[closer] = CLOTH
                 cos_inc[closer] = c[closer]
                 dynamic[closer] = True
-        return RayHits(rng, refl, cos_inc, dynamic)
+                if porous is not None:
+                    porous[closer] = False
+        return RayHits(dist, refl, cos_inc, dynamic, porous)
+
+    def _cast_porous(
+        self,
+        origins: np.ndarray,
+        dirs: np.ndarray,
+        dist: np.ndarray,
+        refl: np.ndarray,
+        cos_inc: np.ndarray,
+        rng: np.random.Generator | None,
+        max_crossings: int = 8,
+    ) -> np.ndarray:
+        """Returns inside porous volumes in front of the solid hits ``dist``; updates
+        dist / refl / cos_inc in place and returns the (M,) porous flags.
+
+        Walks each ray through the porous surfaces it crosses (entering where the surface
+        faces the ray, leaving where it faces away). Inside a volume of extinction k, a
+        segment of length L returns with probability 1 - exp(-k L), at an exponentially
+        distributed depth; leaves are randomly oriented (|cos incidence| uniform)."""
+        rng = rng if rng is not None else np.random.default_rng(0)
+        flags = np.zeros(len(dist), dtype=bool)
+        k_tab, refl_tab = self.porous_extinction, self.porous_reflectivity
+        eps = 1e-3
+        # State of the rays still travelling through vegetation (compacted each step).
+        ids = np.arange(len(dist))  # ray index
+        o, d, end = origins, dirs, dist
+        t = np.zeros(len(dist))  # distance travelled
+        inside = np.zeros(len(dist), dtype=np.int32)  # number of volumes the ray is in
+        k = np.zeros(len(dist))  # extinction of the volume entered last
+        rr = np.zeros(len(dist))  # its reflectivity
+        for _ in range(max_crossings):
+            if ids.size == 0:
+                break
+            rays = np.concatenate([o + d * t[:, None], d], axis=1).astype(np.float32)
+            out = self.porous_caster.cast_rays(o3d.core.Tensor(rays))
+            step = out["t_hit"].numpy().astype(np.float64)
+            nxt = t + step  # next crossing (inf: none)
+            inn = np.flatnonzero(inside > 0)
+            returned = np.zeros(ids.size, dtype=bool)
+            if inn.size:
+                # Inside a volume: a return before the next crossing or the solid hit. A
+                # ray finding no further porous surface (an open mesh) gets no return.
+                depth = rng.exponential(1.0, inn.size) / k[inn]
+                seg_end = np.where(np.isfinite(nxt[inn]), np.minimum(nxt[inn], end[inn]), 0.0)
+                hit = inn[t[inn] + depth < seg_end]
+                r_ids = ids[hit]
+                dist[r_ids] = t[hit] + depth[t[inn] + depth < seg_end]
+                refl[r_ids] = rr[hit]
+                cos_inc[r_ids] = rng.random(hit.size)
+                flags[r_ids] = True
+                returned[hit] = True
+            go = np.flatnonzero(np.isfinite(nxt) & (nxt < end) & ~returned)
+            prim = out["primitive_ids"].numpy()[go].astype(np.int64)
+            nrm = out["primitive_normals"].numpy()[go].astype(np.float64)
+            ids, o, d, end, t = ids[go], o[go], d[go], end[go], nxt[go] + eps
+            inside, k, rr = inside[go], k[go], rr[go]
+            entering = np.sum(nrm * d, axis=1) < 0
+            inside = np.maximum(inside + np.where(entering, 1, -1), 0)
+            k = np.where(entering, k_tab[prim], k)
+            rr = np.where(entering, refl_tab[prim], rr)
+        return flags
+
+
+def _raycasting_scene(vertices: np.ndarray, triangles: np.ndarray):
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(triangles.astype(np.int32))
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(mesh)
+    return rc

@@ -20,7 +20,7 @@ from slam.errors import InputError
 from slam.io.trajectory import read_tum, write_tum
 from slam.sim.lidar import LidarModel, ScanTruth, simulate_scan_truth
 from slam.sim.scene import Scene
-from slam.sim.scenes import SCENES
+from slam.sim.scenes import SCENES, scene_sensor
 from slam.types import Scan
 
 STAMP0 = 1_700_000_000.0  # header stamp of the first sweep (s since the epoch)
@@ -55,6 +55,16 @@ def make_scene(scene: str, *, seed: int = 0, pedestrians: bool = True) -> Scene:
     return SCENES[scene](seed, pedestrians=pedestrians)
 
 
+def effective_model(scene: Scene | str, model: LidarModel | None = None) -> LidarModel:
+    """The LiDAR model a scene (object or name) is simulated with: ``model`` if given, else
+    the scene's own sensor (e.g. the realistic VLP-16 of ``park``), else the default."""
+    if model is not None:
+        return model
+    if isinstance(scene, str):
+        return scene_sensor(scene)
+    return getattr(scene, "sensor", None) or LidarModel()
+
+
 def full_frames(scene: Scene, model: LidarModel) -> int:
     """Number of complete sweeps within the scene's drive."""
     return int(np.floor((scene.duration - model.period) / model.period + 1e-9)) + 1
@@ -74,8 +84,9 @@ def iter_scans(
     with_truth: bool = False,
 ) -> Iterator[Scan] | Iterator[tuple[Scan, ScanTruth]]:
     """Yield the ``frames`` scans of a drive (deterministic for a seed); with ``with_truth``
-    yield (Scan, ScanTruth) pairs."""
-    model = model or LidarModel()
+    yield (Scan, ScanTruth) pairs. model: default the scene's sensor (see
+    :func:`effective_model`)."""
+    model = effective_model(scene, model)
     rng = np.random.default_rng([seed, 7])
 
     def pose_at(times: np.ndarray) -> np.ndarray:
@@ -106,14 +117,15 @@ def simulate(
 ) -> SimResult:
     """Simulate ``scene`` into the folder ``out``; ``frames`` truncates the drive.
 
+    model: the LiDAR model, default the scene's own (:func:`effective_model`).
     progress(done, total) is called after each frame. Overwrites an earlier bag there.
     """
     from slam.io.bag_writer import FORMATS, write_pointcloud_bag
 
     if fmt not in FORMATS:
         raise InputError(f"unknown bag format {fmt!r}; choose one of {list(FORMATS)}")
-    model = model or LidarModel()
     world = make_scene(scene, seed=seed, pedestrians=pedestrians)
+    model = effective_model(world, model)
     total = full_frames(world, model)
     if frames is None:
         frames = total

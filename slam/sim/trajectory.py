@@ -3,10 +3,16 @@
 The robot follows a closed curve for ``loops`` laps (e.g. 1.1 so that it revisits its
 start). Speed is continuous: it ramps up from a crawl and slows in tight turns; yaw
 follows the path tangent; a small roll/pitch wobble (default 1 deg) exercises 6-DoF.
+
+Optional (off by default): smooth random speed changes (accelerating and braking),
+high-frequency roll/pitch vibration (a few Hz, like a wheeled robot on paving), and
+uneven terrain: the robot then drives on a height field, its sensor at ``height`` above
+the ground and its attitude following the local slope.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +97,9 @@ class Trajectory:
     wobble_freq: np.ndarray  # (2, H) Hz
     wobble_phase: np.ndarray  # (2, H) rad
     loop_length: float  # length of one lap (m)
+    z_tab: np.ndarray | None = None  # (K,) ground height (m); None: flat ground at z = 0
+    pitch_tab: np.ndarray | None = None  # (K,) pitch (rad) from the terrain slope
+    roll_tab: np.ndarray | None = None  # (K,) roll (rad) from the terrain slope
 
     @property
     def duration(self) -> float:
@@ -116,9 +125,14 @@ class Trajectory:
             + self.wobble_phase[:, :, None]
         )
         rp = np.sum(self.wobble_amp[:, :, None] * np.sin(arg), axis=1)  # (2, M)
+        z = self.height
+        if self.z_tab is not None:
+            z = np.interp(s, self.s_tab, self.z_tab) + self.height
+            rp[0] += np.interp(s, self.s_tab, self.roll_tab)
+            rp[1] += np.interp(s, self.s_tab, self.pitch_tab)
         T = np.tile(np.eye(4), (t.size, 1, 1))
         T[:, :3, :3] = rotation_zyx(yaw, rp[1], rp[0])
-        T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x, y, self.height
+        T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x, y, z
         return T
 
 
@@ -133,12 +147,21 @@ def closed_curve_trajectory(
     ramp_distance: float = 1.0,
     wobble_deg: float = 1.0,
     start_offset: float = 0.0,
+    speed_variation: float = 0.0,
+    vibration_deg: float = 0.0,
+    terrain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> Trajectory:
     """Drive ``loops`` laps of the closed curve ``xy`` (N,2) counter-clockwise.
 
     speed: cruise speed (m/s); in turns v = speed / (1 + turn_slowdown * |curvature|).
     The first ``ramp_distance`` m accelerate smoothly from 15 % of cruise speed.
     start_offset: distance (m) along the curve where the robot starts.
+    speed_variation: relative amplitude of smooth random speed changes along the route
+    (wavelengths 12-50 m): the robot accelerates and brakes (0 = off).
+    vibration_deg: amplitude (deg) of high-frequency roll/pitch vibration (3 harmonics at
+    2-9 Hz per axis; 0 = off).
+    terrain: ground height z(x, y) (m), vectorised; the sensor rides ``height`` above it
+    and the robot pitches / rolls with the slope (averaged over a 0.6 m wheelbase).
     """
     if loops <= 0 or speed <= 0:
         raise InputError("trajectory needs loops > 0 and speed > 0")
@@ -172,6 +195,12 @@ def closed_curve_trajectory(
     yaw_tab = np.interp(s_mod, period_s, yaw_lap) + 2 * np.pi * winding * k
     kap = np.interp(s_mod, period_s, np.append(kappa_s, kappa_s[0]))
     v = speed / (1.0 + turn_slowdown * np.abs(kap))
+    if speed_variation > 0:
+        wl = rng.uniform(12.0, 50.0, 3)
+        ph = rng.uniform(0, 2 * np.pi, 3)
+        w_ = rng.uniform(0.5, 1.0, 3)
+        f = np.sum(w_[:, None] * np.sin(2 * np.pi * s[None, :] / wl[:, None] + ph[:, None]), 0)
+        v = v * (1.0 + speed_variation * f / w_.sum())
     u = np.clip(s / ramp_distance, 0.0, 1.0)
     v = v * (0.15 + 0.85 * u * u * (3 - 2 * u))
     t_tab = np.concatenate([[0.0], np.cumsum(0.5 * (1 / v[1:] + 1 / v[:-1]) * np.diff(s))])
@@ -179,4 +208,41 @@ def closed_curve_trajectory(
     amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
     freq = rng.uniform(0.15, 0.9, size=(2, 2))
     phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
-    return Trajectory(s, t_tab, xy_tab, yaw_tab, height, amp, freq, phase, lap)
+    if vibration_deg > 0:
+        amp = np.hstack([amp, np.deg2rad(vibration_deg) * np.tile([0.5, 0.3, 0.2], (2, 1))])
+        freq = np.hstack([freq, rng.uniform(2.0, 9.0, size=(2, 3))])
+        phase = np.hstack([phase, rng.uniform(0, 2 * np.pi, size=(2, 3))])
+    traj = Trajectory(s, t_tab, xy_tab, yaw_tab, height, amp, freq, phase, lap)
+    if terrain is not None:
+        traj.z_tab, traj.pitch_tab, traj.roll_tab = _terrain_attitude(terrain, xy_tab, yaw_tab, s)
+    return traj
+
+
+def _terrain_attitude(
+    terrain: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    xy: np.ndarray,
+    yaw: np.ndarray,
+    s: np.ndarray,
+    wheelbase: float = 0.6,
+    step: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground height, pitch and roll (rad) along the path over a terrain z(x, y); the
+    slopes are central differences over the wheelbase (front/rear, left/right wheels)."""
+    # Evaluate on a coarser grid along the path (the terrain is smooth), then interpolate.
+    sub = np.arange(0, len(s), max(int(round(step / max(s[1] - s[0], 1e-9))), 1))
+    if sub[-1] != len(s) - 1:
+        sub = np.append(sub, len(s) - 1)
+    x, y, th = xy[sub, 0], xy[sub, 1], yaw[sub]
+    fwd = np.column_stack([np.cos(th), np.sin(th)]) * (0.5 * wheelbase)
+    left = np.column_stack([-np.sin(th), np.cos(th)]) * (0.5 * wheelbase)
+    z = terrain(x, y)
+    grade = (terrain(x + fwd[:, 0], y + fwd[:, 1]) - terrain(x - fwd[:, 0], y - fwd[:, 1])) / (
+        wheelbase
+    )
+    bank = (terrain(x + left[:, 0], y + left[:, 1]) - terrain(x - left[:, 0], y - left[:, 1])) / (
+        wheelbase
+    )
+    # Rz(yaw) Ry(pitch) Rx(roll): nose up is a negative pitch, left side up a positive roll.
+    pitch = -np.arctan(grade)
+    roll = np.arctan(bank * np.cos(pitch))
+    return (np.interp(s, s[sub], z), np.interp(s, s[sub], pitch), np.interp(s, s[sub], roll))
