@@ -73,6 +73,7 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "frames_per_second": round(st.frames / st.wall_seconds, 2) if st.wall_seconds else None,
         "frontend_frames_per_second": round(st.frames / fe, 2) if fe else None,
         "peak_memory_mb": round(peak_memory_mb(), 1),
+        "frontend_means": {k: round(v, 4) for k, v in sorted(st.diagnostic_means().items())},
         "stopped_by": st.stopped_by,
         **(extra or {}),
     }

@@ -66,6 +66,8 @@ class RunState:
     keyframes: list[Keyframe] = field(default_factory=list)
     factor_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     stage_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    diagnostic_sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    diagnostic_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     skipped_frames: int = 0
     loops_closed: int = 0
     estimates: dict[int, np.ndarray] = field(default_factory=dict)
@@ -75,6 +77,21 @@ class RunState:
     @property
     def frames(self) -> int:
         return len(self.stamps)
+
+    def add_diagnostics(self, extras: dict[str, Any]) -> None:
+        """Accumulate a frame's numeric front-end diagnostics (counts, *_ms timings)."""
+        for k, v in extras.items():
+            if (
+                isinstance(v, (int, float, np.integer, np.floating))
+                and not isinstance(v, bool)
+                and np.isfinite(v)
+            ):
+                self.diagnostic_sums[k] += float(v)
+                self.diagnostic_counts[k] += 1
+
+    def diagnostic_means(self) -> dict[str, float]:
+        """Per-frame mean of each numeric diagnostic over the frames that reported it."""
+        return {k: self.diagnostic_sums[k] / n for k, n in self.diagnostic_counts.items() if n}
 
     def trajectory(self) -> np.ndarray:
         """(N,4,4) optimised pose of every frame: keyframe estimate composed with T_kf_frame."""
@@ -126,6 +143,7 @@ class Pipeline:
         st.stage_seconds["frontend"] += time.perf_counter() - t0
         if odom.extras.get("skipped"):
             st.skipped_frames += 1
+        st.add_diagnostics(odom.extras)
         if odom.is_keyframe or not st.keyframes:
             self._add_keyframe(scan, odom)
         kf = st.keyframes[-1]

@@ -22,6 +22,9 @@ import yaml
 from slam.errors import ConfigError, SlamError
 
 METRIC_KEYS = ("rmse", "mean", "median", "max", "min", "std")
+# per-frame front-end means added to each row (paper 000 section 2.3 discusses removal rate,
+# retained features and neighbourhood-search time next to accuracy)
+SWEEP_DIAGNOSTICS = ("n_edges", "n_planes", "sor_ms", "total_ms")
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,10 @@ def run_job(job: SweepJob) -> dict[str, Any]:
         ape = summary["eval"].ape_trans
         row.update({f"ape_{k}": float(ape[k]) for k in METRIC_KEYS if k in ape})
         row["frames"] = summary["frames"]
+        means = summary["pipeline"].state.diagnostic_means()
+        row.update({k: round(means[k], 3) for k in SWEEP_DIAGNOSTICS if k in means})
+        if means.get("n_after_crop") and "n_after_sor" in means:
+            row["kept_pct"] = round(100.0 * means["n_after_sor"] / means["n_after_crop"], 2)
         row["error"] = summary["stopped_by"] or ""
     except SlamError as exc:
         row["error"] = str(exc)

@@ -36,3 +36,26 @@ def test_heatmap_and_table_written(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
     write_table(rows, tmp_path / "t.csv")
     assert Path(tmp_path / "t.csv").read_text().count("\n") == 5
+
+
+def test_sweep_runs_grid_points_with_diagnostics(corridor_short, tmp_path):
+    """Two SOR strictness levels on a real (simulated) bag: both run, the stricter one keeps
+    fewer points, and every row carries accuracy and the front end's per-frame means."""
+    from slam.sweep import run_sweep
+
+    grid = {"frontend.sor.alpha": [0.3, 3.0]}
+    jobs = make_jobs(
+        [(str(corridor_short.bag), str(corridor_short.ground_truth))],
+        grid,
+        "improved_floam",
+        tmp_path,
+        max_frames=12,
+    )
+    rows = run_sweep(jobs, workers=1)
+    assert [r["error"] for r in rows] == ["", ""]
+    strict, lenient = rows
+    assert 0.0 < strict["ape_rmse"] < 0.05 and 0.0 < lenient["ape_rmse"] < 0.05
+    assert 80.0 < strict["kept_pct"] < lenient["kept_pct"] <= 100.0
+    assert strict["sor_ms"] > 0 and strict["n_planes"] > 50 and strict["frames"] == 12
+    metrics = (Path(jobs[0].out) / "metrics.json").read_text()
+    assert '"frontend_means"' in metrics and '"n_after_sor"' in metrics
