@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from backends.isam2 import Isam2Config
+from backends.isam2 import Isam2Config, isam2_params
 from slam.pose_graph import batch_lm, incremental_isam2, read_g2o, total_error
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pose_graphs"
@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         graph, initial = read_g2o(path)
         batch, t_batch = batch_lm(graph, initial)
-        isam, t_isam = incremental_isam2(graph, initial, config=config)
+        isam, t_isam = incremental_isam2(graph, initial, params=isam2_params(config))
         e_init, e_batch, e_isam = (total_error(graph, v) for v in (initial, batch, isam))
         gap = 100.0 * (e_isam - e_batch) / e_batch
         print(

@@ -12,8 +12,6 @@ from pathlib import Path
 
 import gtsam
 
-from backends.batch import BatchConfig, lm_params
-from backends.isam2 import Isam2Config, isam2_params
 from slam.errors import InputError, SlamError
 from slam.factors import key
 
@@ -149,15 +147,17 @@ def anchored(
 def batch_lm(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
-    config: BatchConfig | None = None,
+    params: gtsam.LevenbergMarquardtParams | None = None,
     anchor: bool = True,
 ) -> tuple[gtsam.Values, float]:
-    """Levenberg-Marquardt optimum of the whole graph and the seconds it took."""
+    """Levenberg-Marquardt optimum of the whole graph and the seconds it took.
+
+    params: gtsam's own (e.g. ``backends.batch.lm_params(config)``); default: gtsam's."""
     start = time.perf_counter()
     full = anchored(graph, initial) if anchor else graph
     try:
         result = gtsam.LevenbergMarquardtOptimizer(
-            full, initial, lm_params(config or BatchConfig())
+            full, initial, params or gtsam.LevenbergMarquardtParams()
         ).optimize()
     except (RuntimeError, ValueError, IndexError) as exc:
         raise SlamError(f"batch optimisation failed: {exc}") from exc
@@ -168,10 +168,12 @@ def incremental_isam2(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
     is3d: bool | None = None,
-    config: Isam2Config | None = None,
+    params: gtsam.ISAM2Params | None = None,
     anchor: bool = True,
 ) -> tuple[gtsam.Values, float]:
     """Feed the graph to iSAM2 pose by pose in key order, one update per pose.
+
+    params: gtsam's own (e.g. ``backends.isam2.isam2_params(config)``); default: gtsam's.
 
     Each new pose gets the factors whose keys are then all present; its initial guess is
     the current estimate of a connected earlier pose composed with the connecting edge
@@ -195,7 +197,7 @@ def incremental_isam2(
             raise InputError(f"factor {i} refers to a pose without an initial value") from exc
         buckets[last].append(factor)
 
-    isam = gtsam.ISAM2(isam2_params(config or Isam2Config()))
+    isam = gtsam.ISAM2(params or gtsam.ISAM2Params())
     pose_of = isam.calculateEstimatePose3 if is3d else isam.calculateEstimatePose2
     guesses: dict[int, object] = {}
     try:

@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from backends.isam2 import Isam2Config
+from backends.isam2 import Isam2Config, isam2_params
 from slam.errors import InputError, SlamError
 from slam.factors import key, robust_noise
 from slam.pose_graph import (
@@ -119,7 +119,9 @@ def test_real_pose_graph_isam2_reaches_the_batch_optimum(name):
     graph, initial = read_g2o(DATA / f"{name}.g2o")
     batch, _ = batch_lm(graph, initial)
     isam, _ = incremental_isam2(
-        graph, initial, config=Isam2Config(relinearize_threshold=0.1, relinearize_skip=10)
+        graph,
+        initial,
+        params=isam2_params(Isam2Config(relinearize_threshold=0.1, relinearize_skip=10)),
     )
     e_init, e_batch, e_isam = (total_error(graph, v) for v in (initial, batch, isam))
     # measured: intel 277.0 -> 22.502 (iSAM2 22.522), garage 8363.6 -> 0.63419 (iSAM2 same)
