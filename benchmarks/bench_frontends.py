@@ -69,10 +69,11 @@ def main() -> None:
     rows.append(
         ("small_gicp (reference)", len(scans) / dt, final_error(poses, scans, gt_stamps, gt), {})
     )
-    print(f"{'front end':24s} {'frames/s':>9s} {'final err m':>12s}  stage ms")
+    ref = rows[-1][1]
+    print(f"{'front end':24s} {'frames/s':>9s} {'x ref':>6s} {'final err m':>12s}  stage ms")
     for name, fps, err, stages in rows:
         st = ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stages.items())
-        print(f"{name:24s} {fps:9.1f} {err:12.4f}  {st}")
+        print(f"{name:24s} {fps:9.1f} {fps / ref:6.3f} {err:12.4f}  {st}")
 
 
 if __name__ == "__main__":
