@@ -108,6 +108,8 @@ def test_float64_fields_bigendian_and_row_padding():
     np.testing.assert_array_equal(out.intensity, np.arange(12) * 10)
     np.testing.assert_allclose(out.time, np.linspace(0.0, 0.1, 12), atol=1e-15)
     assert out.ring is None
+    # the header stamps the sweep end; the scan (and its pose) is at the earliest point
+    assert out.stamp == pytest.approx(STAMP - 0.1, abs=1e-9)
 
 
 def test_ouster_t_nanoseconds_detected():
@@ -132,6 +134,7 @@ def test_absolute_timestamp_float64_seconds():
     msg = raw_cloud([("x", 7), ("y", 7), ("z", 7), ("timestamp", 8), ("channel", 2)], rec)
     out = decode_pointcloud2(msg)
     np.testing.assert_allclose(out.time, [0.05, 0.0, 0.1], atol=1e-6)
+    assert out.stamp == pytest.approx(STAMP, abs=1e-6)  # absolute: the earliest point's time
     np.testing.assert_array_equal(out.ring, [3, 0, 31])
     tf = pointcloud2_time_field(msg)
     assert (tf.unit, tf.absolute) == ("s", True)
@@ -143,6 +146,7 @@ def test_absolute_float_nanoseconds_and_relative_microseconds():
     rec["time"] = 1.7e18 + np.array([0.0, 5e7, 1e8])
     out = decode_pointcloud2(raw_cloud([("x", 7), ("y", 7), ("z", 7), ("time", 8)], rec))
     np.testing.assert_allclose(out.time, [0.0, 0.05, 0.1], atol=1e-6)
+    assert out.stamp == pytest.approx(1.7e9, abs=1e-6)
     rec["time"] = [0.0, 50_000.0, 100_000.0]  # microseconds as float
     out = decode_pointcloud2(raw_cloud([("x", 7), ("y", 7), ("z", 7), ("time", 8)], rec))
     np.testing.assert_allclose(out.time, [0.0, 0.05, 0.1], atol=1e-9)

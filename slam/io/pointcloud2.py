@@ -363,7 +363,9 @@ def decode_pointcloud2(msg: Any, *, index: int = 0) -> Scan:
     """sensor_msgs/PointCloud2 (ROS1 or ROS2, any layout) -> Scan with finite points only.
 
     xyz float64 (N,3) m; intensity float32; ring int16; time float64 s from the earliest
-    point (>= 0). Raises InputError when x/y/z are missing or the buffer is malformed.
+    point (>= 0). stamp: the header stamp, or with per-point time the absolute time of the
+    earliest point (header + its relative time, or its absolute time). Raises InputError when
+    x/y/z are missing or the buffer is malformed.
     """
     fields = {f.name: f for f in msg.fields}
     missing = [c for c in "xyz" if c not in fields]
@@ -396,6 +398,7 @@ def decode_pointcloud2(msg: Any, *, index: int = 0) -> Scan:
         return col.astype(dtype)
 
     time = None
+    stamp = header_stamp(msg)
     if ft is not None:
         raw = column(ft, np.float64)
         good = np.isfinite(raw)
@@ -403,12 +406,21 @@ def decode_pointcloud2(msg: Any, *, index: int = 0) -> Scan:
         if raw.size:
             if not good.all():
                 raw[~good] = raw[good].min() if good.any() else 0.0
-            raw -= raw.min()
+            t0 = raw.min()
+            raw -= t0
             if spec.scale != 1.0:
                 raw *= spec.scale
+            # the scan's stamp is the time of its earliest point (the deskew reference, where
+            # the front end estimates the pose): a driver stamping the sweep END with times
+            # -0.1..0 s, or absolute point times, would otherwise label poses 0.1 s late
+            offset = float(t0) * spec.scale
+            if spec.absolute:
+                stamp = offset
+            elif abs(offset) < _MAX_SWEEP_S:  # else an unknown epoch: keep the header
+                stamp += offset
         time = raw
     return Scan(
-        stamp=header_stamp(msg),
+        stamp=stamp,
         xyz=xyz if all_ok else xyz[keep],
         intensity=column(fi, np.float32),
         ring=column(fr, np.int16),
