@@ -8,7 +8,14 @@ from slam.sim.cache import SIM_VERSION, cache_root, ensure_sequence
 from slam.sim.lidar import LidarModel, ScanTruth, simulate_scan, simulate_scan_truth
 from slam.sim.scene import Pedestrian, Scene
 from slam.sim.scenes import SCENES
-from slam.sim.simulate import SimResult, iter_scans, load_result, make_scene, simulate
+from slam.sim.simulate import (
+    SimResult,
+    effective_model,
+    iter_scans,
+    load_result,
+    make_scene,
+    simulate,
+)
 
 __all__ = [
     "SCENES",
@@ -19,6 +26,7 @@ __all__ = [
     "ScanTruth",
     "SimResult",
     "cache_root",
+    "effective_model",
     "ensure_sequence",
     "iter_scans",
     "load_result",

@@ -76,10 +76,11 @@ class LidarModel:
         Values (plausible, not a particular unit):
         - range accuracy: the VLP-16 datasheet states +-3 cm typical; here 1.2 cm + 0.2 mm/m
           (1-sigma 1.4 cm at 10 m, 2.2 cm at 50 m).
-        - per-beam calibration: uncalibrated / factory-calibrated Velodynes show angular
-          errors of ~0.1-0.2 deg per laser and range offsets of a few cm (Glennie & Lichti
-          2010, HDL-64E; Glennie et al. 2016, VLP-16 calibration and stability): 0.1 deg
-          elevation, 0.1 deg azimuth, 2 cm range (1-sigma per beam).
+        - per-beam calibration: the driver's per-laser angles and range offsets are off by
+          ~0.1-0.2 deg and a few cm on uncalibrated units (the order of magnitude that
+          Velodyne intrinsic-calibration studies report, e.g. Glennie & Lichti 2010 for
+          the HDL-64E S2, Glennie et al. 2016 for the VLP-16): here 0.1 deg elevation,
+          0.1 deg azimuth, 2 cm range (1-sigma per beam).
         - mixed pixels: beam divergence ~3 mrad is about one column step (0.2 deg = 3.5
           mrad) at 10 Hz, so edge footprints often straddle; 30 % of edge returns mix when
           the surfaces are 0.3-5 m apart along the ray.

@@ -383,7 +383,7 @@ def park_path() -> np.ndarray:
 
 
 def park_terrain(seed: int = 0) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """Smooth ground height z(x, y) (m) of the park: ~1.2 m relief over 150 x 120 m,
+    """Smooth ground height z(x, y) (m) of the park: ~1.5 m relief over 150 x 120 m,
     slopes below ~6 %; deterministic for a seed."""
     rng = np.random.default_rng([seed, 31])
     waves = []
@@ -416,7 +416,7 @@ def park(
     speed: float = 2.0,
     pedestrians: bool = True,
 ) -> Scene:
-    """Outdoor park / campus ~150 x 120 m on gently undulating ground (~1.2 m relief): an
+    """Outdoor park / campus ~150 x 120 m on gently undulating ground (~1.5 m relief): an
     avenue lined with trees, lamps and benches, two teardrop loops through lawns with
     scattered trees (porous crowns), hedges, a fenced pond (no returns from water) and a
     few buildings at the east and north edges; the west half is open and vegetated
