@@ -35,7 +35,9 @@ class ImprovedFloamConfig(CommonConfig):
     "map" = covariances of newly inserted map points, and of the map points near them,
     from their k neighbours in the map (the target "calculated identically", dense over
     many scans, refreshed as the map fills in; the default); "scan" = keep the source
-    covariances rotated into the map frame.
+    covariances rotated into the map frame. map_refresh: "neighbours" = the new points' map
+    neighbours get their covariance recomputed too (default); "new" = only the new points
+    (~20 % faster on outdoor maps; park 2.2 vs 2.6 cm, plaza 0.88 vs 0.77 cm APE over 300 frames).
 
     Source covariances know the scan lines (rings) of their support: on open ground a
     16-beam ring is a thin arc, a feature's k neighbours lie on that ring alone, and eq. (1)
@@ -55,12 +57,15 @@ class ImprovedFloamConfig(CommonConfig):
     covariance_source: str = "scan"
     covariance_voxel: float = 0.25
     map_covariance: str = "map"
+    map_refresh: str = "neighbours"
 
     def __post_init__(self) -> None:
         if self.covariance_source not in ("scan", "features"):
             raise ConfigError("covariance_source must be 'scan' or 'features'")
         if self.map_covariance not in ("map", "scan"):
             raise ConfigError("map_covariance must be 'map' or 'scan'")
+        if self.map_refresh not in ("neighbours", "new"):
+            raise ConfigError("map_refresh must be 'neighbours' or 'new'")
 
 
 class ImprovedFloam(ScanToMapFrontend):
@@ -162,7 +167,10 @@ class ImprovedFloam(ScanToMapFrontend):
             tree = self.map.tree()
             new = np.arange(len(self.map) - n_new, len(self.map))
             _, nb = tree.query(self.map.points[new], k=rc.k_covariance, workers=rc.threads)
-            dirty = np.unique(np.concatenate([new, nb.ravel()]))
+            if cfg.map_refresh == "neighbours":
+                dirty = np.unique(np.concatenate([new, nb.ravel()]))
+            else:
+                dirty = new
             self.map.covs[dirty] = estimate_covariances(
                 self.map.points,
                 rc.k_covariance,

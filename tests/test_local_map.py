@@ -24,7 +24,8 @@ def test_map_stays_bounded_while_driving():
         origin = np.array([k * 2.0, 0.0, 0.0])
         scan = origin + rng.uniform(-15, 15, (3000, 3)) * [1, 1, 0.1]
         m.add(scan, origin=origin)
-        assert np.all(np.linalg.norm(m.points - origin, axis=1) <= 20.0 + 15 * 1.5)
+        # pruned every prune_distance (3 m) of travel: at most radius + 3 m behind
+        assert np.all(np.linalg.norm(m.points - origin, axis=1) <= 20.0 + 3.0 + 15 * 1.5)
         sizes.append(len(m))
     # bounded: the map after 120 m of driving is no larger than after 40 m (steady state)
     assert max(sizes[40:]) < 1.3 * sizes[20]

@@ -22,17 +22,24 @@ _OFFSET = np.int64(1 << 20)  # voxel coordinates are packed into 21 bits each
 
 @dataclass
 class LocalMapConfig:
-    """voxel_size (m), max_points_per_voxel, radius (m) of the kept neighbourhood."""
+    """voxel_size (m), max_points_per_voxel, radius (m) of the kept neighbourhood.
+
+    prune_distance (m): points beyond ``radius`` are dropped once the sensor has moved this
+    far since the last pruning (a pass over the whole map; every frame would cost ~8 ms on
+    a 140k-point outdoor map), so the map holds at most ``radius + prune_distance``."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20
     radius: float = 60.0
+    prune_distance: float = 3.0
 
     def __post_init__(self) -> None:
         if self.voxel_size <= 0 or self.max_points_per_voxel < 1 or self.radius <= 0:
             raise ConfigError(
                 "local map needs voxel_size > 0, max_points_per_voxel >= 1 and radius > 0"
             )
+        if self.prune_distance < 0:
+            raise ConfigError("local map prune_distance must be >= 0")
 
 
 def voxel_hash(xyz: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -57,6 +64,7 @@ class VoxelHashMap:
         self.version = 0
         self._tree: cKDTree | None = None
         self._tree_version = -1
+        self._pruned_at: np.ndarray | None = None  # sensor position at the last pruning
 
     def __len__(self) -> int:
         return len(self.points)
@@ -76,9 +84,10 @@ class VoxelHashMap:
     ) -> int:
         """Insert odometry-frame points (and covariances); returns how many were kept.
 
-        First, if ``origin`` (sensor position) is given, points beyond ``radius`` from it are
-        removed. Then a voxel with c points accepts the first (cap - c) new points falling in
-        it; the accepted points are appended, so they are the last ``added`` rows.
+        First, if ``origin`` (sensor position) is given and it moved ``prune_distance`` since
+        the last pruning, points beyond ``radius`` from it are removed. Then a voxel with c
+        points accepts the first (cap - c) new points falling in it; the accepted points are
+        appended, so they are the last ``added`` rows.
         """
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -87,7 +96,11 @@ class VoxelHashMap:
             if covs is None or covs.shape != (len(points), 3, 3):
                 raise InputError("this map stores covariances: pass covs of shape (N, 3, 3)")
         if origin is not None:
-            self.remove_far(origin)
+            origin = np.asarray(origin, dtype=np.float64)[:3]
+            moved = np.inf if self._pruned_at is None else np.linalg.norm(origin - self._pruned_at)
+            if moved >= self.cfg.prune_distance:
+                self.remove_far(origin)
+                self._pruned_at = origin.copy()
         added = 0
         if len(points):
             keys = voxel_hash(points, self.cfg.voxel_size)
@@ -136,6 +149,10 @@ class VoxelHashMap:
     def tree(self) -> cKDTree | None:
         """KD-tree over the current points, rebuilt only when the map changed."""
         if self._tree_version != self.version:
-            self._tree = cKDTree(self.points) if len(self.points) else None
+            self._tree = (
+                cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+                if len(self.points)
+                else None
+            )
             self._tree_version = self.version
         return self._tree
