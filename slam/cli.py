@@ -274,16 +274,34 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from slam.sim.simulate import simulate
 
-    res = simulate(
-        args.scene,
-        Path(args.out),
-        frames=args.frames,
-        fmt=args.format,
-        seed=args.seed,
-        pedestrians=not args.no_pedestrians,
+    bar = tqdm(
+        unit="scan",
+        desc=f"simulate {args.scene}",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        mininterval=0.1 if sys.stderr.isatty() else 10.0,
     )
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        res = simulate(
+            args.scene,
+            Path(args.out),
+            frames=args.frames,
+            fmt=args.format,
+            seed=args.seed,
+            pedestrians=not args.no_pedestrians,
+            progress=progress,
+        )
+    finally:
+        bar.close()
     _eprint(f"wrote {res.frames} scans to {res.bag} and ground truth to {res.ground_truth}")
     return EXIT_OK
 
@@ -442,7 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=cmd_compare)
 
     q = sub.add_parser("simulate", help="simulate a 16-beam lidar sequence into a bag")
-    q.add_argument("scene", help="corridor | plaza")
+    q.add_argument(
+        "scene",
+        help="corridor | plaza (ideal sensor) | park (realistic sensor: calibration errors, "
+        "mixed pixels, porous trees, terrain)",
+    )
     q.add_argument("out", help="output folder")
     q.add_argument("--frames", type=int, help="number of scans (default: the whole path)")
     q.add_argument("--format", default="ros1", choices=["ros1", "ros2", "mcap"])
