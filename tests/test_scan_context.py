@@ -54,7 +54,9 @@ def _town(seed=0, blocks=4, block=30.0, street=12.0):
 
 def _rays(beams=16, columns=900):
     el = np.radians(np.linspace(-15.0, 15.0, beams))
-    az = np.linspace(0, 2 * np.pi, columns, endpoint=False)
+    # half a column off 0: no ray lies exactly on a 6-degree sector boundary, where the bin
+    # of a whole-sector rotation would depend on the last bit of atan2
+    az = np.linspace(0, 2 * np.pi, columns, endpoint=False) + np.pi / columns
     E, A = np.meshgrid(el, az, indexing="ij")
     return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
 
