@@ -18,6 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
+# lambda_min / (lambda_1 + lambda_2 + lambda_3) of a point's neighbourhood below which it lies on
+# a surface or a line (a plane with 1-2 cm noise over a 0.5 m support: ~0.003; isotropic
+# scatter such as a tree crown: up to 1/3)
+MAX_SURFACE_VARIATION = 0.05
+
 
 @dataclass(frozen=True)
 class VerifyParams:
@@ -112,13 +117,21 @@ def _fit_and_overlap(
 ) -> tuple[float, float]:
     """RMSE (m) of inlier nearest-neighbour distances and inlier share of the source points.
 
-    Only points on steep surfaces (|normal_z| < 0.7: walls, poles, facades) are counted when
-    there are enough of them: ground and ceiling overlap in almost any two indoor scans and
-    would make unrelated places look alike.
+    Only points on steep, structured surfaces are counted when there are enough of them:
+    steep (|normal_z| < 0.7: walls, poles, trunks, facades) because ground and ceiling
+    overlap in almost any two indoor scans and would make unrelated places look alike;
+    structured (surface variation lambda_min / trace < MAX_SURFACE_VARIATION: a plane or a
+    line) because foliage and mixed pixels scatter in depth, so even a perfect alignment of
+    a tree crown leaves ~0.15-0.2 m between nearest neighbours and would fail the fitness
+    test in any vegetated place.
     """
     pts = _points(source)
     steep = np.abs(np.asarray(source.normals())[:, :3] @ T[:3, :3].T[:, 2]) < 0.7
-    if steep.sum() >= 50:
+    ev = np.linalg.eigvalsh(np.asarray(source.covs())[:, :3, :3])  # ascending
+    structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
+    if (steep & structured).sum() >= 50:
+        pts = pts[steep & structured]
+    elif steep.sum() >= 50:
         pts = pts[steep]
     moved = pts @ T[:3, :3].T + T[:3, 3]
     _, sq = target_tree.batch_nearest_neighbor_search(moved, num_threads=num_threads)
