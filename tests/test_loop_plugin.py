@@ -7,6 +7,7 @@ Synthetic indoor scenes are ray-cast with open3d: a hall with a core block and c
 from __future__ import annotations
 
 import csv
+import importlib
 
 import gtsam
 import numpy as np
@@ -334,3 +335,47 @@ def test_config_validated_through_the_plugin_registry():
         instantiate("slam.factors", {"name": "loop_closure", "sc_treshold": 0.2}, "loop")
     with pytest.raises(ConfigError, match="exclude_recent"):
         instantiate("slam.factors", {"name": "loop_closure", "exclude_recent": 0}, "loop")
+
+
+def _vegetated_place(rng: np.random.Generator) -> np.ndarray:
+    """Two facades at a corner, two posts and ground (structured), plus a tree crown whose
+    returns are a fresh random sample throughout its volume in every scan (as foliage is)."""
+    u, v = np.meshgrid(np.arange(-12.0, 12.0, 0.08), np.arange(0.0, 4.0, 0.08))
+    wall_a = np.column_stack([np.full(u.size, 8.0), u.ravel(), v.ravel()])
+    wall_b = np.column_stack([u.ravel(), np.full(u.size, 9.0), v.ravel()])
+    gx, gy = np.meshgrid(np.arange(-8.0, 8.0, 0.15), np.arange(-8.0, 8.0, 0.15))
+    ground = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    t = rng.uniform(0, 2 * np.pi, 600)
+    h = rng.uniform(0, 3.0, 600)
+    posts = np.vstack(
+        [np.column_stack([c[0] + 0.15 * np.cos(t), c[1] + 0.15 * np.sin(t), h])
+         for c in ((3.0, -4.0), (-2.0, 5.0))]
+    )  # fmt: skip
+    crowns = []
+    for centre in ((1.0, 3.5, 4.0), (-4.0, -3.0, 4.5), (5.0, 4.0, 4.2)):  # radius 3.5 m
+        d = rng.normal(size=(4000, 3))
+        r = 3.5 * rng.random((4000, 1)) ** (1 / 3)
+        crowns.append(d / np.linalg.norm(d, axis=1, keepdims=True) * r + centre)
+    pts = np.vstack([wall_a, wall_b, ground, posts, *crowns])
+    return pts + rng.normal(0.0, 0.01, pts.shape)
+
+
+def test_verify_judges_a_vegetated_revisit_on_structured_surfaces(monkeypatch):
+    """A true revisit with a tree crown in view: verified on the facades and posts, with the
+    transform recovered; judged on every steep point (the crown included), the scatter of
+    the crown alone fails the fitness test, which is how every park revisit was lost."""
+    verify_mod = importlib.import_module("slam.loop.verify")  # the module, not the function
+    rng = np.random.default_rng(3)
+    target = _vegetated_place(rng)
+    T_ts = yaw_matrix(np.radians(20.0), np.array([0.8, -0.4, 0.05]))
+    world = _vegetated_place(rng)  # same place, a new sample of the crown
+    source = (world - T_ts[:3, 3]) @ T_ts[:3, :3]
+    init = T_ts @ yaw_matrix(np.radians(3.0), np.array([0.3, 0.2, 0.0]))
+    res = verify(target, source, init)
+    assert res.accepted, res.reason
+    assert res.fitness < 0.1  # ~0.08: nearest-neighbour spacing of 0.25 m voxel clouds
+    E = np.linalg.inv(T_ts) @ res.T_target_source
+    assert np.linalg.norm(E[:3, 3]) < 0.03
+    monkeypatch.setattr(verify_mod, "MAX_SURFACE_VARIATION", 1.0)  # every steep point counts
+    old = verify(target, source, init)
+    assert not old.accepted and old.fitness > 0.15, (old.fitness, old.reason)

@@ -18,10 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
+from slam.features.curvature import local_covariances
+
 # lambda_min / (lambda_1 + lambda_2 + lambda_3) of a point's neighbourhood below which it lies on
 # a surface or a line (a plane with 1-2 cm noise over a 0.5 m support: ~0.003; isotropic
 # scatter such as a tree crown: up to 1/3)
 MAX_SURFACE_VARIATION = 0.05
+SHAPE_NEIGHBOURS = 10
 
 
 @dataclass(frozen=True)
@@ -127,7 +130,8 @@ def _fit_and_overlap(
     """
     pts = _points(source)
     steep = np.abs(np.asarray(source.normals())[:, :3] @ T[:3, :3].T[:, 2]) < 0.7
-    ev = np.linalg.eigvalsh(np.asarray(source.covs())[:, :3, :3])  # ascending
+    # raw neighbourhood covariances (small_gicp's are regularised to planes: no shape left)
+    ev = np.linalg.eigvalsh(local_covariances(pts, SHAPE_NEIGHBOURS))  # ascending
     structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
     if (steep & structured).sum() >= 50:
         pts = pts[steep & structured]
