@@ -83,10 +83,13 @@ def test_unknown_top_level_section_and_unknown_config_name():
 
 def test_builtin_recipes_load_and_loop_recipe_inherits():
     names = available_configs()
-    assert {"floam", "improved_floam", "improved_floam_loop"} <= set(names)
+    assert {"floam", "floam_loop", "improved_floam", "improved_floam_loop"} <= set(names)
     base = load_config("improved_floam")
     loop = load_config("improved_floam_loop")
     assert loop.name == "improved_floam_loop"
     assert loop.frontend == base.frontend
     assert loop.factors["loop_closure"]["enabled"] is True
     assert base.factors.get("loop_closure", {}).get("enabled", False) is False
+    floam, floam_loop = load_config("floam"), load_config("floam_loop")
+    assert floam_loop.frontend == floam.frontend and floam_loop.frontend.name == "floam"
+    assert floam_loop.factors["loop_closure"]["enabled"] is True
