@@ -91,5 +91,5 @@ def test_builtin_recipes_load_and_loop_recipe_inherits():
     assert loop.factors["loop_closure"]["enabled"] is True
     assert base.factors.get("loop_closure", {}).get("enabled", False) is False
     floam, floam_loop = load_config("floam"), load_config("floam_loop")
-    assert floam_loop.frontend == floam.frontend and floam_loop.frontend.name == "floam"
+    assert floam_loop.frontend == floam.frontend and floam_loop.frontend["name"] == "floam"
     assert floam_loop.factors["loop_closure"]["enabled"] is True
