@@ -5,7 +5,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
-need_lib() { ! ldconfig -p 2>/dev/null | grep -q "$1"; }
+# grep without -q reads all of ldconfig's output: with -q it exits at the first match, ldconfig
+# dies of SIGPIPE and pipefail reports the library as missing
+need_lib() { ! ldconfig -p 2>/dev/null | grep "$1" >/dev/null; }
 missing=()
 need_lib "libusb-1.0.so.0" && missing+=(libusb-1.0-0)
 need_lib "libgomp.so.1" && missing+=(libgomp1)
