@@ -132,16 +132,6 @@ class ScanToMapFrontend:
         info = np.linalg.inv(cov)
         return 0.5 * (info + info.T)
 
-    @staticmethod
-    def _ring_order_key(scan: Scan) -> np.ndarray | None:
-        """Key ordering the points of a ring (``extract_features(azimuth_order=...)``): the
-        per-point firing time when the scan has one (a sweep's time runs with its azimuth,
-        and sorting it is 5x cheaper than atan2 + sort), else None (azimuth)."""
-        t = scan.time
-        if t is None or len(t) < 2 or not np.ptp(t) > 0:
-            return None
-        return t
-
     # ------------------------------------------------------------------ main loop
     def process(self, scan: Scan) -> Odometry:
         """Estimate T_odom_sensor at ``scan.stamp`` (sweep start) and decide on a keyframe."""

@@ -55,9 +55,7 @@ class Floam(ScanToMapFrontend):
         xyz = scan.xyz
         extras: dict = {"n_after_sor": int(len(xyz))}
         t = time.perf_counter()
-        feats = extract_features(
-            xyz, scan.ring, cfg.features, azimuth_order=self._ring_order_key(scan), top_picks=False
-        )
+        feats = extract_features(xyz, scan.ring, cfg.features, top_picks=False)
         edges = xyz[feats.edge_idx]
         edges = edges[voxel_downsample(edges, cfg.edge_voxel)]
         planes = xyz[feats.plane_idx]

@@ -96,7 +96,6 @@ class ImprovedFloam(ScanToMapFrontend):
             xyz,
             scan.ring,
             self._features_no_kappa,
-            azimuth_order=self._ring_order_key(scan),
             top_picks=False,
         )
         e_idx = feats.edge_idx[voxel_downsample(xyz[feats.edge_idx], cfg.edge_voxel)]
