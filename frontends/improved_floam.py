@@ -165,11 +165,10 @@ class ImprovedFloam(ScanToMapFrontend):
             # its k neighbours get their covariance (re)computed from the current map
             tree = self.map.tree()
             new = np.arange(len(self.map) - n_new, len(self.map))
-            _, nb = tree.query(self.map.points[new], k=rc.k_covariance, workers=rc.threads)
+            dirty = new
             if cfg.map_refresh == "neighbours":
+                _, nb = tree.query(self.map.points[new], k=rc.k_covariance, workers=rc.threads)
                 dirty = np.unique(np.concatenate([new, nb.ravel()]))
-            else:
-                dirty = new
             self.map.covs[dirty] = estimate_covariances(
                 self.map.points,
                 rc.k_covariance,

@@ -130,13 +130,14 @@ def _fit_and_overlap(
     """
     pts = _points(source)
     steep = np.abs(np.asarray(source.normals())[:, :3] @ T[:3, :3].T[:, 2]) < 0.7
-    # raw neighbourhood covariances (small_gicp's are regularised to planes: no shape left)
-    ev = np.linalg.eigvalsh(local_covariances(pts, SHAPE_NEIGHBOURS))  # ascending
-    structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
-    if (steep & structured).sum() >= 50:
-        pts = pts[steep & structured]
-    elif steep.sum() >= 50:
-        pts = pts[steep]
+    steep_idx = np.flatnonzero(steep)
+    if len(steep_idx) >= 50:
+        # shape of the steep points only (neighbours among all points), from raw covariances:
+        # small_gicp's are regularised to planes and carry no shape
+        cov = local_covariances(pts, SHAPE_NEIGHBOURS, query_idx=steep_idx)
+        ev = np.linalg.eigvalsh(cov)  # ascending
+        structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
+        pts = pts[steep_idx[structured]] if structured.sum() >= 50 else pts[steep_idx]
     moved = pts @ T[:3, :3].T + T[:3, 3]
     _, sq = target_tree.batch_nearest_neighbor_search(moved, num_threads=num_threads)
     sq = np.asarray(sq, dtype=np.float64).reshape(-1)
