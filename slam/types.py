@@ -46,6 +46,20 @@ class Scan:
         )
 
 
+@dataclass(frozen=True)
+class SkippedMessage:
+    """A message or file of the input that could not be made into a Scan; the run goes on.
+
+    Readers yield it in place of the Scan. index: the message/file index. reason: a short
+    category used to count skips (e.g. "corrupt message", "no finite points", "bad field
+    datatype"). detail: the full explanation for the one warning line.
+    """
+
+    index: int
+    reason: str
+    detail: str
+
+
 @dataclass
 class Odometry:
     """What a front end returns for one scan.
