@@ -15,6 +15,8 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
+from importlib import resources
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +24,7 @@ import yaml
 
 from slam.errors import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_PACKAGE = "slam.configs"  # the top-level configs/ folder, shipped as package data
 DEFAULT_CONFIG = "improved_floam"
 
 
@@ -146,27 +148,35 @@ def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config
 # --------------------------------------------------------------------------- loading
 
 
+def _builtin_dir() -> Traversable:
+    """The installed recipes (works from a wheel, an editable install or a checkout)."""
+    return resources.files(CONFIG_PACKAGE)
+
+
 def available_configs() -> list[str]:
-    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+    """Names of the built-in recipes."""
+    return sorted(p.name[: -len(".yaml")] for p in _builtin_dir().iterdir() if p.name.endswith(".yaml"))
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def _read_yaml(path: Path | Traversable) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the config: {exc}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config must be a mapping of sections")
     return data
 
 
-def _locate(name_or_path: str) -> Path:
+def _locate(name_or_path: str) -> Path | Traversable:
     path = Path(name_or_path)
     if path.suffix in (".yaml", ".yml"):
         if not path.is_file():
             raise ConfigError(f"config file not found: {path}")
         return path
-    candidate = CONFIG_DIR / f"{name_or_path}.yaml"
+    candidate = _builtin_dir() / f"{name_or_path}.yaml"
     if candidate.is_file():
         return candidate
     raise ConfigError(
@@ -197,7 +207,7 @@ def load_raw(name_or_path: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
         raise ConfigError(f"config 'base' chain loops through {path}")
     data = _read_yaml(path)
     base = data.pop("base", None)
-    data.setdefault("name", path.stem)
+    data.setdefault("name", path.name.rsplit(".", 1)[0])
     if base:
         merged = deep_merge(load_raw(str(base), _seen + (str(path),)), data)
         merged["name"] = data["name"]

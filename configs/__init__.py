@@ -1,0 +1,1 @@
+"""Built-in recipes (``*.yaml``), installed as the package ``slam.configs``."""
