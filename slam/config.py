@@ -155,7 +155,8 @@ def _builtin_dir() -> Traversable:
 
 def available_configs() -> list[str]:
     """Names of the built-in recipes."""
-    return sorted(p.name[: -len(".yaml")] for p in _builtin_dir().iterdir() if p.name.endswith(".yaml"))
+    names = (p.name for p in _builtin_dir().iterdir())
+    return sorted(n[: -len(".yaml")] for n in names if n.endswith(".yaml"))
 
 
 def _read_yaml(path: Path | Traversable) -> dict[str, Any]:
