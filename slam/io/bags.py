@@ -1,9 +1,11 @@
 """Read scans from ROS bags: ROS1 ``.bag``, ROS2 ``.db3`` and ``.mcap``, via rosbags' AnyReader.
 
 Topic choice: the given topic, else the only PointCloud2 topic, else the only LaserScan
-topic; anything else raises TopicError listing the topics. Every rosbags/decoding failure
-becomes an InputError; one raised while iterating names the message index, so a caller
-can stop and still save what it computed.
+topic; anything else raises TopicError listing the topics. A message that cannot be
+deserialised or decoded is yielded as a SkippedMessage (its index, a reason, the detail)
+and reading goes on; a bag that cannot be opened, or whose record iterator itself fails
+(a truncated file), raises InputError naming the message index, so a caller can stop and
+still save what it computed.
 """
 
 from __future__ import annotations
@@ -21,13 +23,15 @@ from rosbags.typesys import Stores, get_typestore
 
 from slam.errors import InputError, TopicError
 from slam.io.pointcloud2 import decode_laserscan, decode_pointcloud2
-from slam.types import Scan
+from slam.io.points import Notes
+from slam.io.skips import checked, skip
+from slam.types import Scan, SkippedMessage
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 LASERSCAN = "sensor_msgs/msg/LaserScan"
 DECODERS: dict[str, Callable[..., Scan]] = {
     POINTCLOUD2: decode_pointcloud2,
-    LASERSCAN: decode_laserscan,
+    LASERSCAN: lambda msg, *, index, notes: decode_laserscan(msg, index=index),
 }
 
 
@@ -198,7 +202,8 @@ def choose_topic(topics: list[TopicSummary], topic: str | None, where: str) -> T
 class BagSource:
     """Scans of one PointCloud2 or LaserScan topic of a bag, in record order.
 
-    Iterating opens the bag anew, so a source can be iterated several times.
+    Iterating opens the bag anew, so a source can be iterated several times. ``notes``
+    collects, once each, the degradations met so far (an optional field dropped, ...).
     """
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
@@ -213,15 +218,20 @@ class BagSource:
         self.topic: str | None = chosen.name
         self.msgtype = chosen.msgtype
         self._count = chosen.count
+        self._notes = Notes()
         self.description = (
             f"{_bag_kind(self.path)} {self.path}, topic {chosen.name} "
             f"({chosen.msgtype.rsplit('/', 1)[-1]}, {chosen.count} msgs)"
         )
 
+    @property
+    def notes(self) -> list[str]:
+        return self._notes.lines
+
     def __len__(self) -> int:
         return self._count
 
-    def __iter__(self) -> Iterator[Scan]:
+    def __iter__(self) -> Iterator[Scan | SkippedMessage]:
         decode = DECODERS[self.msgtype]
         with open_reader(self.path) as reader:
             conns = [c for c in reader.connections if c.topic == self.topic]
@@ -235,11 +245,15 @@ class BagSource:
                 if item is None:
                     return
                 conn, _, raw = item
+                where = f"{self.path} message {index} on {self.topic}"
                 try:
-                    scan = decode(reader.deserialize(raw, conn.msgtype), index=index)
-                except Exception as exc:
-                    raise self._bad(index, exc) from exc
-                yield scan
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    scan = decode(msg, index=index, notes=self._notes)
+                    n_raw = len(msg.ranges) if self.msgtype == LASERSCAN else msg.height * msg.width
+                except Exception as exc:  # any decoding failure costs this message only
+                    yield skip(index, exc, where)
+                else:
+                    yield checked(scan, int(n_raw), where)
                 index += 1
 
     def _bad(self, index: int, exc: Exception) -> InputError:

@@ -3,7 +3,9 @@
 Files are sorted naturally by name (``2.pcd`` before ``10.pcd``). Stamps come from the
 file names when all of them are numbers (seconds; values above 1e15 are taken as ns, above
 1e12 as us), else index * 0.1 s. Intensity, ring and per-point time are kept when the files
-have such attributes (``intensity``, ``ring``, ``time``).
+have such attributes (``intensity``, ``ring``, ``time``, ...). A file that cannot be
+decoded (empty, truncated, no x/y/z, all points NaN) is yielded as a SkippedMessage and
+reading goes on; a file that cannot be opened at all raises InputError.
 """
 
 from __future__ import annotations
@@ -15,7 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import InputError
-from slam.types import Scan
+from slam.io.pcd import read_pcd_columns
+from slam.io.points import INTENSITY_NAMES, RING_NAMES, TIME_NAMES, Notes, assemble_scan, pick
+from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, NO_XYZ, FrameError, checked, skip
+from slam.types import Scan, SkippedMessage
 
 SUFFIXES = (".pcd", ".ply")
 SCAN_PERIOD_S = 0.1
@@ -44,35 +49,72 @@ def stamps_from_names(files: list[Path]) -> np.ndarray:
     return values
 
 
-def read_cloud(path: str | Path, *, index: int = 0, stamp: float = 0.0) -> Scan:
-    """One .pcd/.ply file -> Scan (non-finite points dropped)."""
+def _open3d_columns(path: Path) -> dict[str, np.ndarray]:
+    """Columns of a .ply (or binary_compressed .pcd) file read with open3d.t.io."""
     import open3d as o3d
 
+    try:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            pcd = o3d.t.io.read_point_cloud(str(path))
+    except Exception as exc:  # open3d raises RuntimeError with its own message
+        raise FrameError(CORRUPT_FILE, f"cannot read point cloud {path}: {exc}") from exc
+    if "positions" not in pcd.point:
+        if path.stat().st_size == 0:
+            raise FrameError(EMPTY_FILE, f"{path}: empty file (0 bytes)")
+        raise FrameError(CORRUPT_FILE, f"{path}: no points (empty or unreadable file)")
+    xyz = pcd.point.positions.numpy().reshape(-1, 3)
+    cols = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    for name in (*INTENSITY_NAMES, *RING_NAMES, *TIME_NAMES):
+        if name in pcd.point:
+            cols[name] = pcd.point[name].numpy()[:, 0]
+    return cols
+
+
+def cloud_columns(path: str | Path) -> dict[str, np.ndarray]:
+    """One (N,) column per field of a .pcd/.ply file (first element of multi-count fields).
+
+    PCD ascii/binary: numpy (:mod:`slam.io.pcd`); PLY and binary_compressed PCD: open3d.
+    Raises FrameError naming the file and why; OSError when the file cannot be opened.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".pcd":
+        return _open3d_columns(path)
+    buf = path.read_bytes()
+    try:
+        return read_pcd_columns(buf, str(path))[1]
+    except NotImplementedError:
+        return _open3d_columns(path)
+
+
+def read_cloud(
+    path: str | Path, *, index: int = 0, stamp: float = 0.0, notes: Notes | None = None
+) -> Scan:
+    """One .pcd/.ply file -> Scan (non-finite points dropped; see ``assemble_scan``).
+
+    Per-point time (``time``/``t``/``timestamp``/``offset_time``) in s, ms, us or ns,
+    relative or absolute, is converted as for PointCloud2; with absolute times the stamp
+    is the earliest point's time. Raises FrameError when the file holds no x/y/z or is
+    malformed, InputError when it cannot be opened.
+    """
     path = Path(path)
     try:
-        pcd = o3d.t.io.read_point_cloud(str(path))
-    except Exception as exc:  # open3d raises RuntimeError with its own message
-        raise InputError(f"cannot read point cloud {path}: {exc}") from exc
-    if "positions" not in pcd.point:
-        raise InputError(f"{path}: no points (empty or unreadable file)")
-    xyz = pcd.point.positions.numpy().astype(np.float64).reshape(-1, 3)
-    keep = np.isfinite(xyz).all(axis=1)
-
-    def attr(name: str, dtype: type) -> np.ndarray | None:
-        if name not in pcd.point:
-            return None
-        return pcd.point[name].numpy().reshape(-1)[keep].astype(dtype)
-
-    time = attr("time", np.float64)
-    if time is not None and time.size:
-        time = time - time.min()
-    return Scan(
+        cols = cloud_columns(path)
+    except OSError as exc:
+        raise InputError(f"cannot open {path}: {exc}") from exc
+    missing = [c for c in "xyz" if c not in cols]
+    if missing:
+        raise FrameError(NO_XYZ, f"{path}: no field(s) {missing}; fields are {sorted(cols)}")
+    ni, nr, nt = (pick(names, cols) for names in (INTENSITY_NAMES, RING_NAMES, TIME_NAMES))
+    return assemble_scan(
+        cols["x"],
+        cols["y"],
+        cols["z"],
         stamp=stamp,
-        xyz=xyz[keep],
-        intensity=attr("intensity", np.float32),
-        ring=attr("ring", np.int16),
-        time=time,
         index=index,
+        intensity=None if ni is None else cols[ni],
+        ring=None if nr is None else (nr, cols[nr]),
+        time=None if nt is None else (nt, cols[nt]),
+        notes=notes,
     )
 
 
@@ -81,7 +123,7 @@ def is_cloud_dir(path: Path) -> bool:
 
 
 class FolderSource:
-    """Scans of a folder of .pcd/.ply files."""
+    """Scans of a folder of .pcd/.ply files; ``notes``: degradations met, once each."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
@@ -93,10 +135,28 @@ class FolderSource:
         self.stamps = stamps_from_names(self.files)
         self.topic: str | None = None
         self.description = f"point-cloud folder {self.path} ({len(self.files)} files)"
+        self._notes = Notes()
+
+    @property
+    def notes(self) -> list[str]:
+        return self._notes.lines
 
     def __len__(self) -> int:
         return len(self.files)
 
-    def __iter__(self) -> Iterator[Scan]:
+    def __iter__(self) -> Iterator[Scan | SkippedMessage]:
         for i, f in enumerate(self.files):
-            yield read_cloud(f, index=i, stamp=float(self.stamps[i]))
+            try:
+                scan = read_cloud(f, index=i, stamp=float(self.stamps[i]), notes=self._notes)
+            except FrameError as exc:
+                yield skip(i, exc, str(f))
+                continue
+            yield checked(scan, _raw_count(f), str(f), empty=EMPTY_FILE)
+
+
+def _raw_count(path: Path) -> int:
+    """How many points a file declares (only asked when none was kept): 0 or >0."""
+    try:
+        return read_pcd_columns(path.read_bytes(), str(path))[0].points
+    except (FrameError, NotImplementedError, OSError):
+        return 1

@@ -9,6 +9,7 @@ import numpy as np
 
 from slam.errors import InputError
 from slam.io.pointcloud2 import POINTFIELD_NAMES, pointcloud2_time_field
+from slam.types import Scan
 
 
 def _rate_hz(stamps_ns: list[int]) -> float | None:
@@ -103,7 +104,7 @@ def describe(path: str | Path) -> dict[str, Any]:
         return describe_bag(path)
     source = open_source(path)
     stamps = np.asarray(getattr(source, "stamps", []), dtype=float)
-    first = next(iter(source), None)
+    first = next((s for s in source if isinstance(s, Scan)), None)
     rate = None
     if stamps.size > 1 and stamps[-1] > stamps[0]:
         rate = (stamps.size - 1) / (stamps[-1] - stamps[0])

@@ -3,6 +3,8 @@
 Optional files next to ``velodyne/``: ``times.txt`` (one stamp in s per scan; otherwise
 0.1 s spacing), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground truth,
 T_cam0start_cam0 as KITTI rows). KITTI gives no ring or per-point time: both are None.
+A .bin file that is empty, not a whole number of points or all NaN is yielded as a
+SkippedMessage and reading goes on; one that cannot be opened raises InputError.
 """
 
 from __future__ import annotations
@@ -13,8 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import InputError
+from slam.io.points import assemble_scan
+from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError, checked, skip
 from slam.io.trajectory import read_kitti
-from slam.types import Scan
+from slam.types import Scan, SkippedMessage
 
 SCAN_PERIOD_S = 0.1
 
@@ -25,12 +29,22 @@ def is_kitti_dir(path: Path) -> bool:
 
 
 def read_bin(path: str | Path) -> np.ndarray:
-    """(N, 4) float32 x, y, z, reflectance of one KITTI ``.bin`` file."""
+    """(N, 4) float32 x, y, z, reflectance of one KITTI ``.bin`` file.
+
+    FrameError when it is empty or not a whole number of 16-byte points; InputError when
+    it cannot be opened."""
     path = Path(path)
-    raw = np.fromfile(path, dtype="<f4")
-    if raw.size % 4:
-        raise InputError(f"{path}: {raw.size * 4} bytes is not a whole number of KITTI points")
-    return raw.reshape(-1, 4)
+    try:
+        buf = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot open {path}: {exc}") from exc
+    if not buf:
+        raise FrameError(EMPTY_FILE, f"{path}: empty file (0 bytes)")
+    if len(buf) % 16:
+        raise FrameError(
+            CORRUPT_FILE, f"{path}: {len(buf)} bytes is not a whole number of KITTI points"
+        )
+    return np.frombuffer(buf, dtype="<f4").reshape(-1, 4)
 
 
 def read_calib_tr(path: str | Path) -> np.ndarray | None:
@@ -63,21 +77,23 @@ class KittiSource:
             self.stamps = np.arange(len(self.files)) * SCAN_PERIOD_S
         self.topic: str | None = None
         self.description = f"KITTI sequence {self.path} ({len(self.files)} scans)"
+        self.notes: list[str] = []  # KITTI has no optional fields to drop
 
     def __len__(self) -> int:
         return len(self.files)
 
-    def __iter__(self) -> Iterator[Scan]:
+    def __iter__(self) -> Iterator[Scan | SkippedMessage]:
         for i, f in enumerate(self.files):
-            pts = read_bin(f)
-            xyz = pts[:, :3].astype(np.float64)
-            keep = np.isfinite(xyz).all(axis=1)
-            yield Scan(
-                stamp=float(self.stamps[i]),
-                xyz=xyz[keep],
-                intensity=pts[keep, 3].copy(),
-                index=i,
-            )
+            try:
+                pts = read_bin(f)
+            except FrameError as exc:
+                yield skip(i, exc, str(f))
+                continue
+            scan = assemble_scan(
+                pts[:, 0], pts[:, 1], pts[:, 2], stamp=float(self.stamps[i]), index=i,
+                intensity=pts[:, 3],
+            )  # fmt: skip
+            yield checked(scan, len(pts), str(f), empty=EMPTY_FILE)
 
     def ground_truth(self) -> np.ndarray | None:
         """(N, 4, 4) ground-truth poses in the LiDAR frame (T_velo0_velo), None without poses.txt.

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import InputError
+from slam.io.points import finite_points
 
 MAP_SUFFIXES = (".pcd", ".ply")
 _EMPTY_PCD = (
@@ -28,8 +29,7 @@ def write_map(path: str | Path, points: np.ndarray, voxel: float) -> int:
     path = Path(path)
     if path.suffix.lower() not in MAP_SUFFIXES:
         raise InputError(f"map file {path}: use a .pcd or .ply suffix")
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    pts = finite_points(points)
     path.parent.mkdir(parents=True, exist_ok=True)
     if len(pts) == 0:  # open3d refuses to write empty clouds; write a valid empty file
         path.write_text(_EMPTY_PCD if path.suffix.lower() == ".pcd" else _EMPTY_PLY)

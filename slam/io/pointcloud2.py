@@ -1,13 +1,16 @@
 """sensor_msgs/PointCloud2 and sensor_msgs/LaserScan <-> Scan, vectorised with numpy.
 
-Decoding accepts any field layout: x/y/z as float32 or float64, optional intensity
-(``intensity``/``reflectivity``/``i``), ring (``ring``/``channel``/``line``) and per-point
-time under the names drivers use (``time``, ``t``, ``timestamp``, ``offset_time``), relative
-or absolute, in seconds or nanoseconds. Per-point time is normalised to float64 seconds
-from the first point of the sweep (>= 0). Points with a non-finite coordinate are dropped.
+Decoding accepts any field layout and endianness: x/y/z of any PointField datatype,
+optional intensity (``intensity``/``reflectivity``/``i``), ring (``ring``/``channel``/
+``line``) and per-point time under the names drivers use (``time``, ``t``, ``timestamp``,
+``offset_time``), relative or absolute, in s, ms, us or ns (guessed from the span, see
+``slam.io.points``). Per-point time is normalised to float64 seconds from the first point
+of the sweep (>= 0). Points with a non-finite coordinate are dropped. A malformed message
+raises FrameError (an InputError with a skip ``reason``); an unreadable optional field is
+dropped instead and noted.
 
 Encoding writes one of the driver layouts in :data:`LAYOUTS` (velodyne, ouster, hesai,
-livox, xyz64) so tests and the simulator exercise the same paths as real recordings.
+livox, xyzi, xyz64) so tests and the simulator exercise the same paths as real recordings.
 """
 
 from __future__ import annotations
@@ -18,6 +21,18 @@ from typing import Any
 import numpy as np
 
 from slam.errors import InputError
+from slam.io.points import (
+    INTENSITY_NAMES,
+    RING_NAMES,
+    TIME_NAMES,
+    Notes,
+    TimeField,
+    assemble_scan,
+    finite_mask,
+    guess_time_unit,
+    pick,
+)
+from slam.io.skips import BAD_DATATYPE, CORRUPT_MESSAGE, NO_XYZ, FrameError
 from slam.types import Scan
 
 # sensor_msgs/PointField datatype constants -> numpy type codes (little endian by default).
@@ -42,15 +57,6 @@ POINTFIELD_NAMES: dict[int, str] = {
     8: "FLOAT64",
 }
 _DTYPE_TO_POINTFIELD = {v: k for k, v in POINTFIELD_DTYPES.items()}
-
-INTENSITY_NAMES = ("intensity", "reflectivity", "i")
-RING_NAMES = ("ring", "channel", "line")
-TIME_NAMES = ("time", "t", "timestamp", "offset_time")
-
-# A sweep lasts well under this many seconds; used to guess the unit of float time fields.
-_MAX_SWEEP_S = 2.0
-# Float time values above this are absolute (seconds since the epoch, > ~11 days).
-_ABSOLUTE_MIN_S = 1.0e6
 
 
 @dataclass(frozen=True)
@@ -117,6 +123,14 @@ LAYOUTS: dict[str, Layout] = {
         ("tag", "u1", 16, "zero"),
         ("line", "u1", 17, "ring"),
         ("offset_time", "u4", 18, "rel_ns"),
+    ),
+    # KITTI-converted HDL-64 bags (kitti2bag): no ring, no per-point time
+    "xyzi": _layout(
+        16,
+        ("x", "f4", 0, "x"),
+        ("y", "f4", 4, "y"),
+        ("z", "f4", 8, "z"),
+        ("intensity", "f4", 12, "intensity"),
     ),
     "xyz64": _layout(24, ("x", "f8", 0, "x"), ("y", "f8", 8, "y"), ("z", "f8", 16, "z")),
 }
@@ -257,72 +271,36 @@ def encode_laserscan(
 # --------------------------------------------------------------------------- decoding
 
 
-@dataclass(frozen=True)
-class TimeField:
-    """How a cloud's per-point time was read: field name, unit scale to seconds, absolute?"""
-
-    name: str
-    scale: float
-    absolute: bool
-
-    @property
-    def unit(self) -> str:
-        return {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}.get(self.scale, f"x{self.scale:g} s")
-
-    def describe(self) -> str:
-        return f"{self.name} ({self.unit}, {'absolute' if self.absolute else 'relative'})"
-
-
 def header_stamp(msg: Any) -> float:
     """Header time of a ROS1/ROS2 message in seconds."""
     stamp = msg.header.stamp
     return float(stamp.sec) + float(stamp.nanosec) * 1e-9
 
 
-def _find(fields: dict[str, Any], names: tuple[str, ...]) -> Any | None:
-    for name in names:
-        if name in fields:
-            return fields[name]
+def _field_problem(f: Any, point_step: int) -> str | None:
+    """Why field ``f`` cannot be read (unknown datatype, outside the point), else None."""
+    code = POINTFIELD_DTYPES.get(int(f.datatype))
+    if code is None:
+        return f"PointCloud2 field {f.name!r} has unknown datatype {f.datatype} (valid: 1..8)"
+    size = np.dtype(code).itemsize
+    if int(f.offset) + size > point_step:
+        return (
+            f"PointCloud2 field {f.name!r} (offset {f.offset}, {size} bytes) does not fit in "
+            f"point_step {point_step}: the message is malformed"
+        )
     return None
 
 
-def _guess_time(name: str, datatype: int, values: np.ndarray) -> TimeField:
-    """Unit and absolute/relative of a per-point time field from its type and values."""
-    if values.size == 0:
-        return TimeField(name, 1e-9 if datatype <= 6 else 1.0, False)
-    vmin = float(values.min())
-    span = float(values.max()) - vmin
-    if datatype <= 6:  # integers: drivers (ouster t, livox offset_time) use nanoseconds
-        return TimeField(name, 1e-9, vmin * 1e-9 > _ABSOLUTE_MIN_S)
-    if vmin > 1e15:  # float absolute nanoseconds since the epoch
-        return TimeField(name, 1e-9, True)
-    if vmin > 1e12:  # float absolute microseconds
-        return TimeField(name, 1e-6, True)
-    absolute = vmin > _ABSOLUTE_MIN_S
-    for scale in (1.0, 1e-3, 1e-6, 1e-9):
-        if span * scale <= _MAX_SWEEP_S:
-            return TimeField(name, scale, absolute)
-    return TimeField(name, 1e-9, absolute)
-
-
 def _point_dtype(msg: Any, wanted: dict[str, Any]) -> np.dtype:
+    """Structured dtype of one point: the first element of each wanted field."""
     order = ">" if msg.is_bigendian else "<"
-    names, formats, offsets = [], [], []
-    for f in wanted.values():
-        code = POINTFIELD_DTYPES.get(int(f.datatype))
-        if code is None:
-            raise InputError(f"PointCloud2 field {f.name!r} has unknown datatype {f.datatype}")
-        size = np.dtype(code).itemsize
-        if f.offset + size > msg.point_step:
-            raise InputError(
-                f"PointCloud2 field {f.name!r} (offset {f.offset}, {size} bytes) does not fit in "
-                f"point_step {msg.point_step}: the message is malformed"
-            )
-        names.append(f.name)
-        formats.append(order + code)
-        offsets.append(int(f.offset))
     return np.dtype(
-        {"names": names, "formats": formats, "offsets": offsets, "itemsize": int(msg.point_step)}
+        {
+            "names": [f.name for f in wanted.values()],
+            "formats": [order + POINTFIELD_DTYPES[int(f.datatype)] for f in wanted.values()],
+            "offsets": [int(f.offset) for f in wanted.values()],
+            "itemsize": int(msg.point_step),
+        }
     )
 
 
@@ -331,101 +309,109 @@ def _records(msg: Any, dtype: np.dtype) -> np.ndarray:
     height, width = int(msg.height), int(msg.width)
     step, row_step = int(msg.point_step), int(msg.row_step)
     n = height * width
-    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
     if n == 0:
         return np.zeros(0, dtype=dtype)
-    if row_step < width * step:
-        raise InputError(f"PointCloud2 row_step {row_step} < width {width} x point_step {step}")
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    if height > 1 and row_step < width * step:
+        raise FrameError(
+            CORRUPT_MESSAGE,
+            f"PointCloud2 row_step {row_step} < width {width} x point_step {step}",
+        )
     need = (height - 1) * row_step + width * step
     if data.size < need:
-        raise InputError(
+        raise FrameError(
+            CORRUPT_MESSAGE,
             f"PointCloud2 data has {data.size} bytes, header says {need} "
-            f"({height}x{width} points, point_step {step}, row_step {row_step}): truncated message"
+            f"({height}x{width} points, point_step {step}, row_step {row_step}): "
+            "truncated message",
         )
     if height > 1 and row_step != width * step:
-        data = data[: height * row_step].reshape(height, row_step)[:, : width * step]
-        data = np.ascontiguousarray(data).reshape(-1)
+        data = data[:need]
+        rows = np.lib.stride_tricks.as_strided(data, (height, width * step), (row_step, 1))
+        data = np.ascontiguousarray(rows).reshape(-1)
     return np.frombuffer(data, dtype=dtype, count=n)
+
+
+def _fields(msg: Any, notes: Notes | None) -> tuple[dict[str, Any], dict[str, str | None]]:
+    """The readable fields to decode and which one fills each role (x, y, z, i, ring, t).
+
+    Raises FrameError when x/y/z are missing or unreadable; an unreadable optional field
+    (intensity/ring/time) is left out with a line in ``notes``.
+    """
+    fields = {f.name: f for f in msg.fields}
+    missing = [c for c in "xyz" if c not in fields]
+    if missing:
+        raise FrameError(
+            NO_XYZ,
+            f"PointCloud2 has no field(s) {missing}; fields are {sorted(fields)}: "
+            "cannot read point coordinates",
+        )
+    step = int(msg.point_step)
+    wanted: dict[str, Any] = {}
+    roles: dict[str, str | None] = {}
+    for c in "xyz":
+        problem = _field_problem(fields[c], step)
+        if problem is not None:
+            known = int(fields[c].datatype) in POINTFIELD_DTYPES
+            raise FrameError(CORRUPT_MESSAGE if known else BAD_DATATYPE, problem)
+        wanted[c], roles[c] = fields[c], c
+    for role, names in (("i", INTENSITY_NAMES), ("ring", RING_NAMES), ("t", TIME_NAMES)):
+        name = pick(names, fields)
+        problem = None if name is None else _field_problem(fields[name], step)
+        if problem is not None:
+            if notes is not None:
+                notes.add(f"{problem}: field {name!r} dropped")
+            name = None
+        roles[role] = name
+        if name is not None:
+            wanted[name] = fields[name]
+    if notes is not None:
+        for f in wanted.values():
+            if int(f.count) > 1:
+                notes.add(f"PointCloud2 field {f.name!r} has count {f.count}: first element read")
+    return wanted, roles
 
 
 def pointcloud2_time_field(msg: Any) -> TimeField | None:
     """Which per-point time field ``decode_pointcloud2`` would use, with its unit (or None)."""
     fields = {f.name: f for f in msg.fields}
-    tf = _find(fields, TIME_NAMES)
-    if tf is None:
+    name = pick(TIME_NAMES, fields)
+    if name is None:
         return None
-    rec = _records(msg, _point_dtype(msg, {"t": tf}))
-    values = rec[tf.name].astype(np.float64)
-    return _guess_time(tf.name, int(tf.datatype), values[np.isfinite(values)])
+    tf = fields[name]
+    problem = _field_problem(tf, int(msg.point_step))
+    if problem is not None:
+        raise FrameError(BAD_DATATYPE, problem)
+    values = _records(msg, _point_dtype(msg, {name: tf}))[name]
+    integer = values.dtype.kind in "iu"
+    values = values.astype(np.float64)
+    return guess_time_unit(name, values[finite_mask(values)], integer=integer)
 
 
-def decode_pointcloud2(msg: Any, *, index: int = 0) -> Scan:
+def decode_pointcloud2(msg: Any, *, index: int = 0, notes: Notes | None = None) -> Scan:
     """sensor_msgs/PointCloud2 (ROS1 or ROS2, any layout) -> Scan with finite points only.
 
     xyz float64 (N,3) m; intensity float32; ring int16; time float64 s from the earliest
-    point (>= 0). stamp: the header stamp, or with per-point time the absolute time of the
-    earliest point (header + its relative time, or its absolute time). Raises InputError when
-    x/y/z are missing or the buffer is malformed.
+    point (>= 0), unit guessed from the span (see ``slam.io.points.guess_time_unit``).
+    stamp: the header stamp, or with per-point time the absolute time of the earliest
+    point (header + its relative time, or its absolute time). Fields with count > 1: the
+    first element. An unreadable intensity/ring/time field is dropped (noted once in
+    ``notes``). Raises FrameError (an InputError) when x/y/z are missing or unreadable or
+    the buffer is malformed. A cloud without finite points gives an empty Scan.
     """
-    fields = {f.name: f for f in msg.fields}
-    missing = [c for c in "xyz" if c not in fields]
-    if missing:
-        raise InputError(
-            f"PointCloud2 has no field(s) {missing}; fields are {sorted(fields)}: "
-            "cannot read point coordinates"
-        )
-    wanted = {c: fields[c] for c in "xyz"}
-    fi = _find(fields, INTENSITY_NAMES)
-    fr = _find(fields, RING_NAMES)
-    ft = _find(fields, TIME_NAMES)
-    for f in (fi, fr, ft):
-        if f is not None:
-            wanted[f.name] = f
+    wanted, roles = _fields(msg, notes)
     rec = _records(msg, _point_dtype(msg, wanted))
-    xyz = np.empty((rec.shape[0], 3), dtype=np.float64)
-    xyz[:, 0] = rec[fields["x"].name]
-    xyz[:, 1] = rec[fields["y"].name]
-    xyz[:, 2] = rec[fields["z"].name]
-    keep = np.isfinite(rec[fields["x"].name])  # per column: 4x faster than isfinite(xyz).all(1)
-    keep &= np.isfinite(rec[fields["y"].name])
-    keep &= np.isfinite(rec[fields["z"].name])
-    all_ok = bool(keep.all())
-
-    def column(f: Any, dtype: Any) -> np.ndarray | None:
-        if f is None:
-            return None
-        col = rec[f.name] if all_ok else rec[f.name][keep]
-        return col.astype(dtype)
-
-    time = None
-    stamp = header_stamp(msg)
-    if ft is not None:
-        raw = column(ft, np.float64)
-        good = np.isfinite(raw)
-        spec = _guess_time(ft.name, int(ft.datatype), raw[good])
-        if raw.size:
-            if not good.all():
-                raw[~good] = raw[good].min() if good.any() else 0.0
-            t0 = raw.min()
-            raw -= t0
-            if spec.scale != 1.0:
-                raw *= spec.scale
-            # the scan's stamp is the time of its earliest point (the deskew reference, where
-            # the front end estimates the pose): a driver stamping the sweep END with times
-            # -0.1..0 s, or absolute point times, would otherwise label poses 0.1 s late
-            offset = float(t0) * spec.scale
-            if spec.absolute:
-                stamp = offset
-            elif abs(offset) < _MAX_SWEEP_S:  # else an unknown epoch: keep the header
-                stamp += offset
-        time = raw
-    return Scan(
-        stamp=stamp,
-        xyz=xyz if all_ok else xyz[keep],
-        intensity=column(fi, np.float32),
-        ring=column(fr, np.int16),
-        time=time,
+    ri, rr, rt = roles["i"], roles["ring"], roles["t"]
+    return assemble_scan(
+        rec["x"],
+        rec["y"],
+        rec["z"],
+        stamp=header_stamp(msg),
         index=index,
+        intensity=None if ri is None else rec[ri],
+        ring=None if rr is None else (rr, rec[rr]),
+        time=None if rt is None else (rt, rec[rt]),
+        notes=notes,
     )
 
 
@@ -443,7 +429,7 @@ def decode_laserscan(msg: Any, *, index: int = 0) -> Scan:
     angles = float(msg.angle_min) + beams * float(msg.angle_increment)
     with np.errstate(invalid="ignore"):
         valid = (
-            np.isfinite(ranges)
+            finite_mask(ranges)
             & (ranges >= float(msg.range_min))
             & (ranges <= float(msg.range_max))
             & (ranges > 0.0)

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from slam.errors import InputError
-from slam.types import Scan
+from slam.types import Scan, SkippedMessage
 
 ACCEPTED = (
     "a ROS1 .bag file, a ROS2 bag folder (metadata.yaml with .db3 or .mcap files), "
@@ -17,15 +17,25 @@ ACCEPTED = (
 
 @runtime_checkable
 class ScanSource(Protocol):
-    """Scans in time order with ``index`` 0, 1, 2, ...; ``len`` is the message/file count.
+    """One item per message/file in record order, ``index`` 0, 1, 2, ...; ``len`` is the
+    message/file count.
 
-    Scans empty after NaN removal are still yielded (length 0): the pipeline decides.
+    Each item is a Scan, or a SkippedMessage(index, reason, detail) for a message/file that
+    cannot become one (corrupt buffer, unknown datatype on x/y/z, empty file, no finite
+    point): ``reason`` is a short category to count (see ``slam.io.skips``), ``detail`` the
+    full explanation, and iteration goes on with the next item. A readable scan is never
+    empty. An unreadable OPTIONAL field (intensity, ring, time: unknown datatype, ring
+    values beyond int16, non-finite times) is dropped from the scan and the scan kept;
+    ``notes`` lists each such degradation once. Only an input that cannot be read at all
+    (missing file, bag that cannot be opened, a truncated bag whose record iterator fails)
+    raises InputError, from ``__init__`` or from the iteration.
     """
 
     topic: str | None
     description: str
+    notes: list[str]
 
-    def __iter__(self) -> Iterator[Scan]: ...
+    def __iter__(self) -> Iterator[Scan | SkippedMessage]: ...
 
     def __len__(self) -> int: ...
 
