@@ -19,7 +19,20 @@ from slam.eval.report import markdown_table_to_html, write_report
 from slam.eval.tables import ape_table, format_table
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-SINGLE = ["trajectory_xy", "trajectory_xz", "ape_over_time", "ape_heatmap", "rpy", "speed"]
+SINGLE = ["trajectory_xy", "trajectory_xz", "ape_over_time", "ape_heatmap", "xyz", "rpy", "speed"]
+PIXELS = {  # (width, height) of each plot: figure size x DPI, never cropped to the data
+    "trajectory_xy": (800, 700),
+    "trajectory_xz": (800, 700),
+    "ape_heatmap": (800, 700),
+    "loops": (800, 700),
+    "overlay_xy": (800, 700),
+    "overlay_xz": (800, 700),
+    "ape_over_time": (900, 450),
+    "speed": (900, 450),
+    "ape_overlay": (900, 450),
+    "xyz": (900, 750),
+    "rpy": (900, 750),
+}
 
 
 def synthetic(noise: float, n: int = 150, seed: int = 1):
@@ -32,6 +45,14 @@ def synthetic(noise: float, n: int = 150, seed: int = 1):
     est[:, :3, 3] += rng.normal(0, noise, (n, 3))
     stamps = np.arange(n) * 0.1
     return evaluate_arrays(stamps, est, stamps, gt, EvalOptions())
+
+
+@pytest.fixture(scope="module", autouse=True)
+def evo_home(tmp_path_factory):
+    """evo writes ~/.evo on its first import: give this module its own HOME."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
+        yield
 
 
 @pytest.fixture(scope="module")
@@ -47,24 +68,27 @@ def single_plots(results, tmp_path_factory) -> list[Path]:
     return plot_all(res, out, loops=[(3, 145), (10, 130)], loop_positions=loop_pos, prefix="run_")
 
 
-def assert_png(path: Path) -> None:
+def assert_png(path: Path, prefix: str) -> None:
     data = path.read_bytes()
     assert data[:8] == PNG_MAGIC, path
-    assert len(data) > 10_000, (path, len(data))
+    assert len(data) > 20_000, (path, len(data))
+    assert data[12:16] == b"IHDR"
+    size = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    assert size == PIXELS[path.stem.removeprefix(prefix)], path
 
 
 def test_plot_all_single_writes_every_plot(single_plots):
     names = [p.stem for p in single_plots]
     assert names == [f"run_{n}" for n in SINGLE] + ["run_loops"]
     for p in single_plots:
-        assert_png(p)
+        assert_png(p, "run_")
 
 
 def test_plot_all_several_results_adds_overlays(results, tmp_path):
     files = plot_all(results, tmp_path, prefix="cmp_", per_result=False)
     assert [p.stem for p in files] == ["cmp_overlay_xy", "cmp_overlay_xz", "cmp_ape_overlay"]
     for p in files:
-        assert_png(p)
+        assert_png(p, "cmp_")
     assert sorted(tmp_path.iterdir()) == sorted(files)
 
 
@@ -175,7 +199,7 @@ def test_report_is_self_contained(results, single_plots, tmp_path):
     parser.feed(text)
     assert "<title>Demo &lt;run&gt;</title>" in text
     assert "<script" not in text and "<link" not in text and parser.urls == []
-    assert len(parser.imgs) == len(single_plots) == 7
+    assert len(parser.imgs) == len(single_plots) == 8
     for src, png in zip(parser.imgs, single_plots, strict=True):
         assert src.startswith("data:image/png;base64,")
         assert base64.b64decode(src.split(",", 1)[1]) == png.read_bytes()

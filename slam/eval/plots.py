@@ -1,158 +1,193 @@
-"""Evaluation plots saved as PNG files.
+"""Evaluation plots saved as PNG files, drawn by ``evo.tools.plot``.
 
-Figures are built with ``matplotlib.figure.Figure`` and the Agg canvas, never pyplot: no
-window opens, no global backend is switched, and evo's plot settings (``~/.evo``) are not
-touched. Lengths in metres, angles in degrees, time in seconds from the first matched pose.
+evo draws what it knows: trajectories against ground truth (``plot.traj``,
+``plot.trajectories``), the estimate colour-mapped by its APE (``plot.traj_colormap``),
+x/y/z and roll/pitch/yaw over time (``plot.traj_xyz``/``plot.traj_rpy``), speed
+(``plot.speeds``), APE over time with its statistics (``plot.error_array``) and the
+loop-closure edges (``plot.draw_correspondence_edges``). This module only adds titles, the
+loop legend and the file names.
+
+evo's plot module reads its settings from ``~/.evo/settings.json`` (and creates them on
+first import, which is why the tests give every process its own ``HOME``); the plots follow
+those settings (colour map, seaborn style, Euler sequence) except the backend, which is
+always the non-interactive Agg: no window ever opens. Figures are closed once written.
+Lengths in metres, angles in degrees, time in seconds from the first matched pose.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
+import itertools
 import re
-from collections.abc import Mapping, Sequence
+import sys
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.collections import LineCollection
-from matplotlib.figure import Figure
-from scipy.spatial.transform import Rotation
 
 from slam.errors import InputError
 from slam.eval.metrics import EvalResult
 
-DPI = 110
-GT_STYLE = {"color": "0.35", "linestyle": "--", "linewidth": 1.2, "label": "ground truth"}
-EST_STYLE = {"color": "tab:blue", "linewidth": 1.4, "label": "estimate"}
+DPI = 100
+TRAJ_SIZE = (8.0, 7.0)  # inches: 800 x 700 px
+TIME_SIZE = (9.0, 4.5)  # 900 x 450 px
+STACK_SIZE = (9.0, 7.5)  # three stacked time plots, 900 x 750 px
+GT_LABEL, EST_LABEL = "ground truth", "estimate"
+GT_STYLE = {"style": "--", "color": "gray"}
+EST_COLOR = "tab:blue"
+APE_STATS = ("rmse", "mean", "median", "std")
+PLANES = ("xy", "xz")
 
 
-def _figure(rows: int = 1, cols: int = 1, size: tuple[float, float] = (8.0, 6.0), **kw):
-    fig = Figure(figsize=size, dpi=DPI, layout=None)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(rows, cols, squeeze=False, **kw)
-    return fig, axes
+def evo_plot() -> ModuleType:
+    """``evo.tools.plot``, imported on first use with the Agg backend.
+
+    evo applies its settings (``mpl.use(plot_backend)``, seaborn style) when the module is
+    imported; the backend is set to Agg before that, and switched to Agg if evo was
+    imported elsewhere with another one. evo's "Initialized new ~/.evo" line is swallowed.
+    """
+    if "evo.tools.plot" not in sys.modules:
+        with contextlib.redirect_stdout(io.StringIO()):
+            from evo.tools.settings import SETTINGS
+
+            SETTINGS.plot_backend = "agg"
+            from evo.tools import plot  # noqa: F401  (applies SETTINGS once)
+    import matplotlib
+    import matplotlib.pyplot as plt
+    from evo.tools import plot
+
+    if matplotlib.get_backend().lower() != "agg":
+        plt.switch_backend("agg")
+    return plot
 
 
-def _save(fig: Figure, path: Path) -> Path:
-    fig.savefig(path, format="png", dpi=DPI)
+def _figure(size: tuple[float, float]):
+    import matplotlib.pyplot as plt
+
+    return plt.figure(figsize=size, dpi=DPI)
+
+
+def save_png(fig, path: Path) -> Path:
+    """Write ``fig`` as a PNG of exactly its size (figsize x DPI pixels), then close it."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    try:  # evo sets savefig.bbox=tight, which would crop to a data-dependent size
+        with matplotlib.rc_context({"savefig.bbox": "standard"}):
+            fig.savefig(path, format="png", dpi=DPI)
+    finally:
+        plt.close(fig)
     return path
 
 
-def _seconds(result: EvalResult) -> np.ndarray:
-    return result.stamps - result.stamps[0]
+def _traj(stamps: np.ndarray, poses: np.ndarray, name: str = ""):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    return PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps, name=name)
 
 
-def _view(ax, plane: str) -> tuple[int, int]:
-    i, j = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}[plane]
-    ax.set_xlabel(f"{plane[0]} [m]")
-    ax.set_ylabel(f"{plane[1]} [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, alpha=0.3)
-    return i, j
+def _gt_est(result: EvalResult):
+    return _traj(result.stamps, result.gt_poses, GT_LABEL), _traj(
+        result.stamps, result.est_poses, EST_LABEL
+    )
 
 
-def plot_trajectory(result: EvalResult, path: Path, plane: str = "xy") -> Path:
-    """Estimate (aligned) against ground truth projected on ``plane``."""
-    fig, ax = _figure()
-    ax = ax[0, 0]
-    i, j = _view(ax, plane)
-    gt, est = result.gt_poses[:, :3, 3], result.est_poses[:, :3, 3]
-    ax.plot(gt[:, i], gt[:, j], **GT_STYLE)
-    ax.plot(est[:, i], est[:, j], **EST_STYLE)
-    ax.plot(gt[0, i], gt[0, j], "o", color="tab:green", label="start")
-    ax.set_title(f"Trajectory ({plane.upper()}), {result.options.align} alignment")
-    ax.legend(loc="best")
-    return _save(fig, path)
+def _mode(plane: str):
+    plot = evo_plot()
+    if plane not in plot.PlotMode.__members__:
+        raise InputError(
+            f"plot plane must be one of {list(plot.PlotMode.__members__)}, got {plane!r}"
+        )
+    return plot.PlotMode[plane]
 
 
-def plot_ape_over_time(result: EvalResult, path: Path) -> Path:
-    """Translational APE per pose with mean, median, RMSE lines and the mean +- std band."""
-    fig, ax = _figure(size=(9.0, 4.5))
-    ax = ax[0, 0]
-    t, e, s = _seconds(result), result.ape_errors, result.ape_trans
-    ax.plot(t, e, color="tab:blue", linewidth=1.2, label="APE")
-    ax.axhspan(s["mean"] - s["std"], s["mean"] + s["std"], color="tab:orange", alpha=0.2,
-               label="mean ± std")  # fmt: skip
-    ax.axhline(s["mean"], color="tab:orange", label=f"mean {s['mean']:.3f} m")
-    ax.axhline(s["median"], color="tab:green", linestyle="--", label=f"median {s['median']:.3f} m")
-    ax.axhline(s["rmse"], color="tab:red", linestyle=":", label=f"RMSE {s['rmse']:.3f} m")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("APE (translation) [m]")
-    ax.set_title("Absolute pose error over time")
-    ax.grid(True, alpha=0.3)
-    top = float(max(e.max(), s["mean"] + s["std"]))
-    ax.set_ylim(0.0, 1.3 * top if top > 0 else 1.0)  # headroom for the legend row
-    ax.legend(loc="upper center", ncol=5, fontsize="small")
-    return _save(fig, path)
+def _fit_box(ax, plane: str) -> None:
+    """Fill the axes box: true proportions in the ground plane (the limits grow, as
+    ``adjustable="datalim"``), stretched heights in vertical planes, where evo's equal
+    aspect would squash a drive's few metres of height into a line."""
+    if "z" in plane:
+        ax.set_aspect("auto")
+        ax.set_title(f"{ax.get_title()} (height stretched)")
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
 
 
-def plot_error_heatmap(result: EvalResult, path: Path, plane: str = "xy") -> Path:
-    """Estimated path coloured by its translational APE, ground truth dashed."""
-    fig, ax = _figure()
-    ax = ax[0, 0]
-    i, j = _view(ax, plane)
-    gt, est = result.gt_poses[:, :3, 3], result.est_poses[:, :3, 3]
-    ax.plot(gt[:, i], gt[:, j], **GT_STYLE)
-    xy = est[:, [i, j]]
-    segs = np.stack([xy[:-1], xy[1:]], axis=1)
+def trajectory_figure(result: EvalResult, plane: str = "xy"):
+    """Aligned estimate (with start/end markers) over the dashed ground truth."""
+    plot, mode = evo_plot(), _mode(plane)
+    fig = _figure(TRAJ_SIZE)
+    ax = plot.prepare_axis(fig, mode)
+    gt, est = _gt_est(result)
+    plot.traj(ax, mode, gt, label=GT_LABEL, **GT_STYLE)
+    plot.traj(ax, mode, est, "-", EST_COLOR, EST_LABEL, plot_start_end_markers=True)
+    ax.set_title(f"Trajectory ({plane}), {result.options.align} alignment")
+    _fit_box(ax, plane)
+    return fig
+
+
+def ape_colormap_figure(result: EvalResult, plane: str = "xy"):
+    """Estimate coloured by its translational APE (m) per pose, ground truth dashed."""
+    plot, mode = evo_plot(), _mode(plane)
+    fig = _figure(TRAJ_SIZE)
+    ax = plot.prepare_axis(fig, mode)
+    gt, est = _gt_est(result)
+    plot.traj(ax, mode, gt, label=GT_LABEL, **GT_STYLE)
     err = result.ape_errors
-    seg_err = 0.5 * (err[:-1] + err[1:]) if err.size > 1 else err
-    lc = LineCollection(segs, cmap="jet", linewidth=2.5)
-    lc.set_array(seg_err)
-    lc.set_clim(float(err.min()), float(err.max()) if err.max() > err.min() else err.min() + 1e-9)
-    ax.add_collection(lc)
-    ax.autoscale_view()
-    fig.colorbar(lc, ax=ax, label="APE (translation) [m]")
-    ax.set_title("Estimate coloured by APE")
-    ax.legend(loc="best")
-    return _save(fig, path)
+    lo, hi = float(err.min()), float(err.max())
+    plot.traj_colormap(ax, est, err, mode, min_map=lo, max_map=max(hi, lo + 1e-9),
+                       title="Estimate coloured by APE (translation, m)", fig=fig)  # fmt: skip
+    _fit_box(ax, plane)
+    return fig
 
 
-def _rpy_deg(poses: np.ndarray) -> np.ndarray:
-    """(N,3) roll, pitch, yaw in degrees (ZYX Euler), yaw unwrapped."""
-    ypr = Rotation.from_matrix(poses[:, :3, :3]).as_euler("ZYX")
-    rpy = np.unwrap(ypr[:, ::-1], axis=0)
-    return np.degrees(rpy)
+def ape_figure(result: EvalResult):
+    """Translational APE per pose with its RMSE, mean, median and std (evo's band)."""
+    plot = evo_plot()
+    fig = _figure(TIME_SIZE)
+    ax = fig.add_subplot(111)
+    stats = {k: result.ape_trans[k] for k in APE_STATS}
+    plot.error_array(ax, result.ape_errors, x_array=result.stamps - result.stamps[0],
+                     statistics=stats, name="APE", title="Absolute pose error over time",
+                     xlabel="$t$ (s)", ylabel="APE (translation, m)")  # fmt: skip
+    ax.set_ylim(0.0, 1.25 * float(result.ape_errors.max()) or 1.0)  # headroom for the legend
+    ax.legend(loc="upper center", ncol=len(APE_STATS) + 1, frameon=True)
+    return fig
 
 
-def plot_rpy(result: EvalResult, path: Path) -> Path:
-    """Roll, pitch and yaw of estimate and ground truth over time."""
-    fig, axes = _figure(3, 1, size=(9.0, 7.5), sharex=True)
-    t = _seconds(result)
-    gt, est = _rpy_deg(result.gt_poses), _rpy_deg(result.est_poses)
-    est += 360.0 * np.round((gt - est) / 360.0)  # same branch as the ground truth
-    for k, name in enumerate(("roll", "pitch", "yaw")):
-        ax = axes[k, 0]
-        ax.plot(t, gt[:, k], **GT_STYLE)
-        ax.plot(t, est[:, k], **EST_STYLE)
-        ax.set_ylabel(f"{name} [deg]")
-        ax.grid(True, alpha=0.3)
-    axes[0, 0].legend(loc="best")
-    axes[0, 0].set_title("Orientation over time")
-    axes[-1, 0].set_xlabel("time [s]")
-    return _save(fig, path)
+def _stacked(result: EvalResult, draw: Callable, title: str):
+    fig = _figure(STACK_SIZE)
+    axes = fig.subplots(3, 1, sharex=True)
+    gt, est = _gt_est(result)
+    t0 = float(result.stamps[0])
+    draw(axes, gt, label=GT_LABEL, start_timestamp=t0, **GT_STYLE)
+    draw(axes, est, "-", EST_COLOR, EST_LABEL, start_timestamp=t0)
+    axes[0].set_title(title)
+    return fig
 
 
-def _speed(stamps: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    dt = np.diff(stamps)
-    dp = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
-    ok = dt > 0
-    return stamps[1:][ok] - stamps[0], dp[ok] / dt[ok]
+def xyz_figure(result: EvalResult):
+    """x, y, z (m) of estimate and ground truth over time."""
+    return _stacked(result, evo_plot().traj_xyz, "Position over time")
 
 
-def plot_speed(result: EvalResult, path: Path) -> Path:
-    """Speed (m/s) from consecutive matched poses of estimate and ground truth."""
-    fig, ax = _figure(size=(9.0, 4.5))
-    ax = ax[0, 0]
-    t, v = _speed(result.stamps, result.gt_poses)
-    ax.plot(t, v, **GT_STYLE)
-    t, v = _speed(result.stamps, result.est_poses)
-    ax.plot(t, v, **EST_STYLE)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("speed [m/s]")
+def rpy_figure(result: EvalResult):
+    """Roll, pitch, yaw (deg, evo's ``euler_angle_sequence``) of both over time."""
+    return _stacked(result, evo_plot().traj_rpy, "Orientation over time")
+
+
+def speed_figure(result: EvalResult):
+    """Speed (m/s) between consecutive matched poses of estimate and ground truth."""
+    plot = evo_plot()
+    fig = _figure(TIME_SIZE)
+    ax = fig.add_subplot(111)
+    gt, est = _gt_est(result)
+    t0 = float(result.stamps[0])
+    plot.speeds(ax, gt, label=GT_LABEL, start_timestamp=t0, **GT_STYLE)
+    plot.speeds(ax, est, "-", EST_COLOR, EST_LABEL, start_timestamp=t0)
     ax.set_title("Speed over time")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    return _save(fig, path)
+    return fig
 
 
 def _loop_segments(
@@ -176,52 +211,56 @@ def _loop_segments(
     return np.asarray(segs, dtype=float).reshape(-1, 2, 3)
 
 
-def plot_loops(result: EvalResult, path: Path, segments: np.ndarray, plane: str = "xy") -> Path:
-    """Estimated trajectory with loop-closure edges (red)."""
-    fig, ax = _figure()
-    ax = ax[0, 0]
-    i, j = _view(ax, plane)
-    gt, est = result.gt_poses[:, :3, 3], result.est_full[:, :3, 3]
-    ax.plot(gt[:, i], gt[:, j], **GT_STYLE)
-    ax.plot(est[:, i], est[:, j], **EST_STYLE)
-    lc = LineCollection(segments[:, :, [i, j]], colors="tab:red", linewidths=1.5,
-                        label=f"loop closures ({len(segments)})")  # fmt: skip
-    ax.add_collection(lc)
-    ax.plot(segments[:, :, i].ravel(), segments[:, :, j].ravel(), ".", color="tab:red")
+def loops_figure(result: EvalResult, segments: np.ndarray, plane: str = "xy"):
+    """Whole aligned estimate over the ground truth with the loop-closure edges (red)."""
+    from evo.core.trajectory import PosePath3D
+
+    plot, mode = evo_plot(), _mode(plane)
+    fig = _figure(TRAJ_SIZE)
+    ax = plot.prepare_axis(fig, mode)
+    gt = _traj(result.stamps, result.gt_poses)
+    plot.traj(ax, mode, gt, label=GT_LABEL, **GT_STYLE)
+    plot.traj(ax, mode, PosePath3D(poses_se3=list(result.est_full)), "-", EST_COLOR, EST_LABEL)
+    if len(segments):
+        quat = np.tile([1.0, 0.0, 0.0, 0.0], (len(segments), 1))
+        ends = [PosePath3D(segments[:, k], quat) for k in (0, 1)]
+        plot.draw_correspondence_edges(ax, *ends, mode, color="tab:red")
+        ax.collections[-1].set_label(f"loop closures ({len(segments)})")
+        ax.collections[-1].set_linewidth(1.5)
+        ax.legend(frameon=True)
     ax.set_title("Loop closures")
-    ax.legend(loc="best")
-    return _save(fig, path)
+    _fit_box(ax, plane)
+    return fig
 
 
-def plot_overlay(results: Mapping[str, EvalResult], path: Path, plane: str = "xy") -> Path:
-    """Several estimates (aligned) over the ground truth of the first one."""
-    fig, ax = _figure()
-    ax = ax[0, 0]
-    i, j = _view(ax, plane)
+def overlay_figure(results: Mapping[str, EvalResult], plane: str = "xy"):
+    """Several aligned estimates (labelled with their APE RMSE) over the first ground truth."""
+    plot, mode = evo_plot(), _mode(plane)
+    fig = _figure(TRAJ_SIZE)
+    ax = plot.prepare_axis(fig, mode)
     first = next(iter(results.values()))
-    gt = first.gt_poses[:, :3, 3]
-    ax.plot(gt[:, i], gt[:, j], **GT_STYLE)
-    for name, res in results.items():
-        est = res.est_poses[:, :3, 3]
-        rmse = res.ape_trans["rmse"]
-        ax.plot(est[:, i], est[:, j], linewidth=1.3, label=f"{name} (RMSE {rmse:.3f} m)")
-    ax.set_title(f"Trajectories ({plane.upper()})")
-    ax.legend(loc="best", fontsize="small")
-    return _save(fig, path)
+    plot.traj(ax, mode, _traj(first.stamps, first.gt_poses), label=GT_LABEL, **GT_STYLE)
+    named = {
+        f"{name} (RMSE {res.ape_trans['rmse']:.3f} m)": _traj(res.stamps, res.est_poses)
+        for name, res in results.items()
+    }
+    plot.trajectories(ax, named, mode, title=f"Trajectories ({plane})")
+    _fit_box(ax, plane)
+    return fig
 
 
-def plot_ape_overlay(results: Mapping[str, EvalResult], path: Path) -> Path:
-    """APE over time of several estimates."""
-    fig, ax = _figure(size=(9.0, 4.5))
-    ax = ax[0, 0]
-    for name, res in results.items():
-        ax.plot(_seconds(res), res.ape_errors, linewidth=1.2, label=name)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("APE (translation) [m]")
-    ax.set_title("Absolute pose error over time")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
-    return _save(fig, path)
+def ape_overlay_figure(results: Mapping[str, EvalResult]):
+    """Translational APE over time of several estimates, one colour each."""
+    plot = evo_plot()
+    fig = _figure(TIME_SIZE)
+    ax = fig.add_subplot(111)
+    for (name, res), color in zip(
+        results.items(), itertools.cycle(plot.color_cycle()), strict=False
+    ):
+        plot.error_array(ax, res.ape_errors, x_array=res.stamps - res.stamps[0], color=color,
+                         name=name, title="Absolute pose error over time", xlabel="$t$ (s)",
+                         ylabel="APE (translation, m)")  # fmt: skip
+    return fig
 
 
 def _safe(name: str) -> str:
@@ -230,17 +269,17 @@ def _safe(name: str) -> str:
 
 def _plot_one(result, out: Path, prefix: str, loops, loop_positions) -> list[Path]:
     segments = _loop_segments(result, loops, loop_positions)  # validate before drawing
-    files = [
-        plot_trajectory(result, out / f"{prefix}trajectory_xy.png", "xy"),
-        plot_trajectory(result, out / f"{prefix}trajectory_xz.png", "xz"),
-        plot_ape_over_time(result, out / f"{prefix}ape_over_time.png"),
-        plot_error_heatmap(result, out / f"{prefix}ape_heatmap.png"),
-        plot_rpy(result, out / f"{prefix}rpy.png"),
-        plot_speed(result, out / f"{prefix}speed.png"),
+    figures = [(f"trajectory_{p}", lambda p=p: trajectory_figure(result, p)) for p in PLANES]
+    figures += [
+        ("ape_over_time", lambda: ape_figure(result)),
+        ("ape_heatmap", lambda: ape_colormap_figure(result)),
+        ("xyz", lambda: xyz_figure(result)),
+        ("rpy", lambda: rpy_figure(result)),
+        ("speed", lambda: speed_figure(result)),
     ]
     if loops is not None or loop_positions is not None:
-        files.append(plot_loops(result, out / f"{prefix}loops.png", segments))
-    return files
+        figures.append(("loops", lambda: loops_figure(result, segments)))
+    return [save_png(make(), out / f"{prefix}{name}.png") for name, make in figures]
 
 
 def plot_all(
@@ -255,19 +294,20 @@ def plot_all(
     """Write every plot of one result (or of several, plus overlays) into ``out_dir``.
 
     Per result: ``trajectory_xy``, ``trajectory_xz``, ``ape_over_time``, ``ape_heatmap``,
-    ``rpy``, ``speed`` and, when loops are given, ``loops`` (``.png``). ``loops`` are
-    (i, j) row indices of the input estimate (one pose per scan); ``loop_positions`` are
-    (2,3) end points in the estimate's frame (the result's alignment is applied). For a
+    ``xyz``, ``rpy``, ``speed`` and, when loops are given, ``loops`` (``.png``). ``loops``
+    are (i, j) row indices of the input estimate (one pose per scan); ``loop_positions``
+    are (2,3) end points in the estimate's frame (the result's alignment is applied). For a
     dict of results files are prefixed with the name, loops may be a dict by name, and
     ``overlay_xy.png``/``overlay_xz.png``/``ape_overlay.png`` are added
     (``per_result=False``: only those overlays).
     Returns the written paths in that order.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     if isinstance(result, EvalResult):
         if isinstance(loops, Mapping) or isinstance(loop_positions, Mapping):
             raise InputError("loops by name need a dict of results")
+        _loop_segments(result, loops, loop_positions)
+        out.mkdir(parents=True, exist_ok=True)
         return _plot_one(result, out, prefix, loops, loop_positions)
     if not isinstance(result, Mapping) or not result:
         raise InputError("plot_all needs an EvalResult or a non-empty dict of them")
@@ -283,11 +323,9 @@ def plot_all(
             lp = loops.get(name) if isinstance(loops, Mapping) else None
             pp = loop_positions.get(name) if isinstance(loop_positions, Mapping) else None
             _loop_segments(res, lp, pp)
-    files = [
-        plot_overlay(result, out / f"{prefix}overlay_xy.png", "xy"),
-        plot_overlay(result, out / f"{prefix}overlay_xz.png", "xz"),
-        plot_ape_overlay(result, out / f"{prefix}ape_overlay.png"),
-    ]
+    out.mkdir(parents=True, exist_ok=True)
+    files = [save_png(overlay_figure(result, p), out / f"{prefix}overlay_{p}.png") for p in PLANES]
+    files.append(save_png(ape_overlay_figure(result), out / f"{prefix}ape_overlay.png"))
     for name, res in result.items() if per_result else ():
         lp = loops.get(name) if isinstance(loops, Mapping) else None
         pp = loop_positions.get(name) if isinstance(loop_positions, Mapping) else None

@@ -1,0 +1,187 @@
+"""Figures drawn by evo.tools.plot carry the data they show (slam/eval/plots.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_eval_report import synthetic
+
+from slam.errors import InputError
+from slam.eval import plots
+
+
+@pytest.fixture(scope="module", autouse=True)
+def evo_home(tmp_path_factory):
+    """evo writes ~/.evo on its first import: give this module its own HOME."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
+        yield
+
+
+@pytest.fixture(scope="module")
+def res():
+    return synthetic(0.1)
+
+
+@pytest.fixture
+def close():
+    """Collects figures and closes them after the test."""
+    import matplotlib.pyplot as plt
+
+    figs = []
+    yield figs.append
+    for f in figs:
+        plt.close(f)
+
+
+def lines_by_label(ax) -> dict:
+    return {line.get_label(): line.get_xydata() for line in ax.get_lines()}
+
+
+@pytest.mark.parametrize("plane,cols", [("xy", [0, 1]), ("xz", [0, 2])])
+def test_trajectory_axes_hold_ground_truth_and_estimate(res, close, plane, cols):
+    fig = plots.trajectory_figure(res, plane)
+    close(fig)
+    lines = lines_by_label(fig.axes[0])
+    assert lines["ground truth"].shape == lines["estimate"].shape == (res.n_matched, 2)
+    np.testing.assert_allclose(lines["ground truth"], res.gt_poses[:, cols, 3])
+    np.testing.assert_allclose(lines["estimate"], res.est_poses[:, cols, 3])
+    assert fig.axes[0].get_xlabel() == "$x$ (m)"
+
+
+def test_colormap_colours_are_the_ape_values(res, close):
+    from matplotlib import colormaps
+    from matplotlib.colors import Normalize
+
+    fig = plots.ape_colormap_figure(res)
+    close(fig)
+    ax, cax = fig.axes
+    (lc,) = ax.collections
+    err = res.ape_errors
+    assert np.ptp(err) > 0.1  # the colours below really differ along the path
+    cmap = colormaps[plots.evo_plot().SETTINGS.plot_trajectory_cmap]
+    expected = cmap(Normalize(err.min(), err.max())(err))
+    segs = lc.get_segments()
+    assert len(segs) == res.n_matched - 1
+    np.testing.assert_allclose(np.array(segs)[:, 0], res.est_poses[:-1, :2, 3])
+    np.testing.assert_allclose(lc.get_colors()[: len(segs)], expected[: len(segs)], atol=1e-12)
+    np.testing.assert_allclose(cax.get_ylim(), (err.min(), err.max()))
+    gt = lines_by_label(ax)["ground truth"]
+    np.testing.assert_allclose(gt, res.gt_poses[:, :2, 3])
+
+
+def test_ape_over_time_line_and_statistics(res, close):
+    fig = plots.ape_figure(res)
+    close(fig)
+    lines = lines_by_label(fig.axes[0])
+    np.testing.assert_allclose(lines["APE"][:, 0], res.stamps - res.stamps[0])
+    np.testing.assert_allclose(lines["APE"][:, 1], res.ape_errors)
+    for key in ("rmse", "mean", "median"):
+        np.testing.assert_allclose(lines[key][:, 1], res.ape_trans[key])
+
+
+def test_xyz_and_rpy_over_time(res, close):
+    from scipy.spatial.transform import Rotation
+
+    fig = plots.xyz_figure(res)
+    close(fig)
+    assert len(fig.axes) == 3
+    for k, ax in enumerate(fig.axes):
+        lines = lines_by_label(ax)
+        np.testing.assert_allclose(lines["estimate"][:, 1], res.est_poses[:, k, 3])
+        np.testing.assert_allclose(lines["ground truth"][:, 1], res.gt_poses[:, k, 3])
+        np.testing.assert_allclose(lines["estimate"][:, 0], res.stamps - res.stamps[0])
+    fig = plots.rpy_figure(res)
+    close(fig)
+    rpy = Rotation.from_matrix(res.gt_poses[:, :3, :3]).as_euler("xyz", degrees=True)  # sxyz
+    assert np.ptp(rpy[:, 2]) > 300  # a whole turn of yaw
+    for k, ax in enumerate(fig.axes):
+        np.testing.assert_allclose(lines_by_label(ax)["ground truth"][:, 1], rpy[:, k], atol=1e-9)
+
+
+def test_speed_is_distance_over_time(res, close):
+    fig = plots.speed_figure(res)
+    close(fig)
+    lines = lines_by_label(fig.axes[0])
+    v = np.linalg.norm(np.diff(res.gt_poses[:, :3, 3], axis=0), axis=1) / np.diff(res.stamps)
+    np.testing.assert_allclose(lines["ground truth"][:, 1], v)
+    assert lines["estimate"][:, 1].mean() > v.mean()  # noise adds apparent speed
+
+
+def test_loop_edges_join_the_right_poses(res, close):
+    seg = plots._loop_segments(res, [(3, 145), (10, 130)], None)
+    fig = plots.loops_figure(res, seg)
+    close(fig)
+    ax = fig.axes[0]
+    edges = [c for c in ax.collections if c.get_label().startswith("loop closures (2)")]
+    (lc,) = edges
+    got = np.array(lc.get_segments())
+    np.testing.assert_allclose(got, res.est_full[[[3, 145], [10, 130]]][:, :, :2, 3])
+    assert lines_by_label(ax)["estimate"].shape == (res.n_est, 2)
+
+
+def test_overlay_names_every_run_with_its_rmse(close):
+    results = {"floam": synthetic(0.3), "improved": synthetic(0.1)}
+    fig = plots.overlay_figure(results)
+    close(fig)
+    lines = lines_by_label(fig.axes[0])
+    for name, r in results.items():
+        np.testing.assert_allclose(
+            lines[f"{name} (RMSE {r.ape_trans['rmse']:.3f} m)"], r.est_poses[:, :2, 3]
+        )
+    fig = plots.ape_overlay_figure(results)
+    close(fig)
+    lines = lines_by_label(fig.axes[0])
+    np.testing.assert_allclose(lines["floam"][:, 1], results["floam"].ape_errors)
+    assert not np.allclose(lines["floam"][:, 1], lines["improved"][:, 1])
+
+
+def test_bad_plane_is_an_input_error(res):
+    with pytest.raises(InputError, match="plane"):
+        plots.trajectory_figure(res, "ab")
+
+
+def test_plot_all_leaves_no_open_figure(res, tmp_path):
+    import matplotlib.pyplot as plt
+
+    before = set(plt.get_fignums())
+    plots.plot_all(res, tmp_path)
+    assert set(plt.get_fignums()) == before
+
+
+SCRIPT = """
+import sys, numpy as np, matplotlib
+sys.path.insert(0, {tests!r})
+from test_eval_report import synthetic
+from slam.eval.plots import plot_all
+files = plot_all(synthetic(0.1, n=40), {out!r})
+print(matplotlib.get_backend(), len(files))
+"""
+
+
+def test_fresh_interpreter_with_a_gui_backend_in_evo_settings_draws_with_agg(tmp_path):
+    """A user whose ~/.evo asks for TkAgg, with no display, gets PNGs and no window; evo's
+    "Updated outdated ~/.evo/settings.json" line does not reach stdout."""
+    from evo.tools.settings_template import DEFAULT_SETTINGS_DICT
+
+    evo_dir = tmp_path / "home" / ".evo"
+    evo_dir.mkdir(parents=True)
+    (evo_dir / "assets_version").write_text("0.0.1")  # outdated: evo rewrites and prints
+    settings = {**DEFAULT_SETTINGS_DICT, "plot_backend": "TkAgg"}
+    (evo_dir / "settings.json").write_text(json.dumps(settings))
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MPLBACKEND")}
+    env["HOME"] = str(tmp_path / "home")
+    script = SCRIPT.format(tests=str(Path(__file__).parent), out=str(tmp_path / "out"))
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["agg", "7"]
+    assert len(list((tmp_path / "out").glob("*.png"))) == 7
+    assert (evo_dir / "assets_version").read_text() != "0.0.1"  # evo did run its update
+    assert json.loads((evo_dir / "settings.json").read_text())["plot_backend"] == "TkAgg"
