@@ -1,0 +1,224 @@
+"""Beam model of a spinning lidar, estimated from its data when the driver gives no ring field.
+
+The elevation table (one angle per beam) is read once from the first scans and then assigns
+every point of every later scan to a beam (``BeamModel.ring_of``). Two cues, in this order:
+
+1. Point layout. Clouds converted from KITTI .bin files and organised clouds (Ouster,
+   ``ring``-less Velodyne exports) store the points beam by beam: along the stored order the
+   azimuth unwraps to about one turn per beam. Then the beams are the turns of the unwrapped
+   azimuth, exact even where two beams' elevations overlap (HDL-64's upper block is 1/3 deg
+   apart while each beam's origin sits a few cm off the sensor origin, so elevations seen from
+   the origin smear by ~0.3 deg at 10 m).
+2. Elevation histogram. Otherwise (firing-order clouds, shuffled clouds) the beams are the
+   peaks of the histogram of elevation angles, and a point belongs to the nearest beam.
+
+Ring 0 is the lowest beam (Velodyne's ``ring`` convention).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks
+
+from slam.errors import InputError
+
+HIST_BIN_DEG = 0.02  # histogram bin; the finest real spacing is Pandar128's 0.125 deg
+HIST_SMOOTH_DEG = 0.04  # Gaussian smoothing of the histogram (sigma)
+MIN_BEAM_GAP_DEG = 0.1  # two peaks closer than this are one beam
+MIN_PEAK_SHARE = 0.05  # a peak holding < 5 % of the median peak's points is noise
+MIN_TURN_BEAMS, MAX_TURN_BEAMS = 4, 256  # layout cue: accepted number of azimuth turns
+MIN_TURN_POINTS = 100  # a beam of a layout scan has at least this many points
+LAYOUT_SEAM_DEG = 3.0  # beams of a layout scan start their turn within this azimuth
+
+
+def elevation_deg(xyz: np.ndarray) -> np.ndarray:
+    """(N,) elevation (deg) of each point seen from the sensor origin."""
+    return np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+
+
+def _group_medians(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """(n,) median of values per group id 0..n-1 (upper median; NaN for an empty group)."""
+    span = float(np.ptp(values)) + 1.0 if len(values) else 1.0
+    order = np.argsort(group * span + (values - (values.min() if len(values) else 0.0)))
+    counts = np.bincount(group, minlength=n)
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    med = np.full(n, np.nan)
+    has = counts > 0
+    med[has] = values[order][start[has] + counts[has] // 2]
+    return med
+
+
+def layout_rings(xyz: np.ndarray) -> np.ndarray | None:
+    """(N,) ring of each point from the stored order when the cloud is stored beam by beam,
+    else None. Ring 0 = lowest beam.
+
+    Beam by beam: along the order the azimuth unwraps to a whole number of turns (one per
+    beam), mostly monotone, and the turns' median elevations are monotone. Points within
+    LAYOUT_SEAM_DEG of a turn's seam (beams start their turn a little staggered) join the
+    adjacent turn whose median elevation is nearer.
+    """
+    n = len(xyz)
+    if n < MIN_TURN_BEAMS * MIN_TURN_POINTS:
+        return None
+    az = np.unwrap(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    sign = 1.0 if az[-1] >= az[0] else -1.0
+    u = sign * (az - az[0])
+    if np.mean(np.diff(u) < -1e-3) > 0.05:  # a firing-order cloud steps back every column
+        return None
+    turn = np.floor(u / (2 * np.pi)).astype(np.int64)
+    n_turns = int(turn[-1]) + 1
+    if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS + 1:
+        return None
+    phase = u - 2 * np.pi * turn
+    seam = np.radians(LAYOUT_SEAM_DEG)
+    lo, hi = phase < seam, phase > 2 * np.pi - seam
+    elev = elevation_deg(xyz)
+    clear = ~(lo | hi)
+    med = _group_medians(elev[clear], turn[clear], n_turns)
+    for near, other in ((lo, turn - 1), (hi, turn + 1)):
+        i = np.flatnonzero(near & (other >= 0) & (other < n_turns))
+        d_own = np.abs(elev[i] - med[turn[i]])
+        d_other = np.abs(elev[i] - med[other[i]])
+        move = (d_other < d_own) | (np.isnan(d_own) & ~np.isnan(d_other))
+        turn[i[move]] = other[i[move]]
+    ids, turn = np.unique(turn, return_inverse=True)
+    n_turns = len(ids)
+    counts = np.bincount(turn, minlength=n_turns)
+    if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
+        return None
+    d = np.diff(_group_medians(elev, turn, n_turns))
+    if not (np.all(d <= 0.05) or np.all(d >= -0.05)):
+        return None
+    ring = turn if d.sum() >= 0 else n_turns - 1 - turn
+    return ring.astype(np.int16)
+
+
+def _histogram_beams(elev: np.ndarray) -> np.ndarray:
+    """Ascending beam elevations (deg): peaks of the smoothed elevation histogram."""
+    lo, hi = float(elev.min()) - 0.5, float(elev.max()) + 0.5
+    edges = np.arange(lo, hi + HIST_BIN_DEG, HIST_BIN_DEG)
+    h, _ = np.histogram(elev, bins=edges)
+    hs = gaussian_filter1d(h.astype(np.float64), HIST_SMOOTH_DEG / HIST_BIN_DEG)
+    peaks, props = find_peaks(
+        hs, distance=max(int(MIN_BEAM_GAP_DEG / HIST_BIN_DEG), 1), prominence=1e-9
+    )
+    if peaks.size == 0:
+        raise InputError("no beam found in the elevation histogram: is this a spinning lidar?")
+    # a beam is a peak standing out of the valleys beside it by a share of a typical beam
+    prom = props["prominences"]
+    keep = prom >= MIN_PEAK_SHARE * np.median(np.sort(prom)[-min(len(prom), 16) :])
+    centres = edges[:-1] + 0.5 * HIST_BIN_DEG
+    return centres[peaks[keep]]
+
+
+@dataclass(frozen=True)
+class BeamModel:
+    """Beam elevation table of a spinning lidar and what depends on it.
+
+    elevations_deg: (B,) ascending beam elevations (deg) seen from the sensor origin, ring r
+    = elevations_deg[r]. layout: True when the clouds are stored beam by beam (``ring_of``
+    then reads the rings from the point order). max_range: 99th percentile of the ranges (m)
+    of the scans it was estimated from (e.g. Scan Context's radius). source: "ring field",
+    "point layout" or "elevation histogram".
+    """
+
+    elevations_deg: np.ndarray
+    layout: bool = False
+    max_range: float = 0.0
+    source: str = "elevation histogram"
+
+    @property
+    def n_beams(self) -> int:
+        return int(len(self.elevations_deg))
+
+    @property
+    def fov_deg(self) -> tuple[float, float]:
+        """(lowest, highest) beam elevation (deg)."""
+        return float(self.elevations_deg[0]), float(self.elevations_deg[-1])
+
+    @property
+    def vertical_resolution_deg(self) -> float:
+        """Median angle (deg) between adjacent beams (0 for a single beam)."""
+        if self.n_beams < 2:
+            return 0.0
+        return float(np.median(np.diff(self.elevations_deg)))
+
+    def ring_of(self, xyz: np.ndarray) -> np.ndarray:
+        """(N,) int16 beam index of each point (0 = lowest). Stored beam by beam with this
+        model's beam count: the order's azimuth turns; otherwise the nearest beam elevation."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
+        if self.layout:
+            ring = layout_rings(xyz)
+            if ring is not None and int(ring.max()) + 1 == self.n_beams:
+                return ring
+        mid = 0.5 * (self.elevations_deg[1:] + self.elevations_deg[:-1])
+        return np.searchsorted(mid, elevation_deg(xyz)).astype(np.int16)
+
+    def describe(self) -> str:
+        """One line for the log, e.g. 'inferred 64 beams, +2.8..-23.6 deg, ...'."""
+        lo, hi = self.fov_deg
+        verb = "read" if self.source == "ring field" else "inferred"
+        return (
+            f"{verb} {self.n_beams} beams, {hi:+.1f}..{lo:+.1f} deg "
+            f"(median spacing {self.vertical_resolution_deg:.2f} deg, from the {self.source}), "
+            f"99 % of returns within {self.max_range:.0f} m"
+        )
+
+
+def _ranges(scans: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate([np.linalg.norm(s, axis=1) for s in scans])
+
+
+def _check_scans(scans: list[np.ndarray]) -> list[np.ndarray]:
+    out = []
+    for s in scans:
+        s = np.asarray(s, dtype=np.float64)
+        if s.ndim != 2 or s.shape[1] != 3:
+            raise InputError(f"points must be (N, 3) arrays, got shape {s.shape}")
+        ok = np.isfinite(s).all(axis=1) & (np.einsum("ij,ij->i", s, s) > 1e-6)
+        out.append(s if ok.all() else s[ok])
+    if not out or sum(len(s) for s in out) < 10:
+        raise InputError("need at least one scan with points to estimate the beam model")
+    return out
+
+
+def beams_from_rings(scans: list[np.ndarray], rings: list[np.ndarray]) -> BeamModel:
+    """Beam model of scans that carry a driver ring field: per ring the median elevation.
+
+    Rings are renumbered by elevation only in the model; a ring absent from the data gets
+    no entry (``n_beams`` counts the rings seen)."""
+    scans = [np.asarray(s, dtype=np.float64) for s in scans]
+    elev = np.concatenate([elevation_deg(s) for s in scans])
+    ring = np.concatenate([np.asarray(r, dtype=np.int64) for r in rings])
+    if len(ring) != len(elev):
+        raise InputError("rings must have one entry per point")
+    ok = ring >= 0
+    ids = np.unique(ring[ok])
+    med = np.array([np.median(elev[ok][ring[ok] == i]) for i in ids])
+    max_range = float(np.percentile(_ranges(scans), 99))
+    return BeamModel(np.sort(med), layout=False, max_range=max_range, source="ring field")
+
+
+def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
+    """Beam model from the (N, 3) xyz of the first few scans (3-5 are plenty).
+
+    When every scan is stored beam by beam with the same beam count, the table is the median
+    elevation per azimuth turn; otherwise the peaks of the elevation histogram of all points.
+    """
+    scans = _check_scans(scans)
+    max_range = float(np.percentile(_ranges(scans), 99))
+    per_scan = [layout_rings(s) for s in scans]
+    counts = {None if r is None else int(r.max()) + 1 for r in per_scan}
+    if None not in counts and len(counts) == 1:
+        elev = np.concatenate([elevation_deg(s) for s in scans])
+        ring = np.concatenate(per_scan).astype(np.int64)
+        n = counts.pop()
+        med = _group_medians(elev, ring, n)
+        return BeamModel(np.sort(med), layout=True, max_range=max_range, source="point layout")
+    elev = np.concatenate([elevation_deg(s) for s in scans])
+    return BeamModel(_histogram_beams(elev), layout=False, max_range=max_range)
