@@ -32,123 +32,6 @@ def default_out_dir(config_name: str) -> Path:
     return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config_name}"
 
 
-def disable_loops(config: Any) -> None:
-    """``--no-loop``: switch off every factor plugin that closes loops."""
-    from slam import plugins
-
-    for name, params in config.factors.items():
-        cls = plugins.load("slam.factors", params.get("plugin", name))
-        if getattr(cls, "is_loop", False):
-            params["enabled"] = False
-
-
-def run_one(
-    bag: Path,
-    config: Any,
-    out: Path,
-    *,
-    topic: str | None = None,
-    gt: Path | None = None,
-    quiet: bool = False,
-    label: str | None = None,
-) -> dict[str, Any]:
-    """Run one configuration on one input, write all outputs; returns a summary dict."""
-    from tqdm import tqdm
-
-    from slam.io.source import open_source
-    from slam.outputs import write_outputs
-    from slam.pipeline import Pipeline, resolved_config
-
-    resolved = resolved_config(config)
-    source = open_source(bag, topic=topic or config.source.topic)
-    pipeline = Pipeline(config)
-    total = len(source)
-    if config.source.max_frames is not None:
-        total = min(total, config.source.max_frames) if total else config.source.max_frames
-    bar = tqdm(
-        total=total or None,
-        unit="frame",
-        desc=label or config.name,
-        disable=quiet,
-        dynamic_ncols=True,
-        file=sys.stderr,
-        mininterval=0.1 if sys.stderr.isatty() else 10.0,  # logs get a line per 10 s
-    )
-    last = [0]
-
-    def on_frame(n: int) -> None:
-        bar.update(n - last[0])
-        last[0] = n
-
-    try:
-        state = pipeline.run(
-            source,
-            on_frame=on_frame,
-            max_frames=config.source.max_frames,
-            skip_frames=config.source.skip_frames,
-        )
-    finally:
-        bar.close()
-    written = write_outputs(
-        pipeline,
-        out,
-        resolved_config=resolved,
-        extra_metrics={"input": str(bag), "topic": getattr(source, "topic", None)},
-    )
-    summary: dict[str, Any] = {
-        "out": out,
-        "frames": state.frames,
-        "keyframes": len(state.keyframes),
-        "stopped_by": state.stopped_by,
-        "written": written,
-        "pipeline": pipeline,
-    }
-    if gt is not None and state.frames > 1:
-        summary["eval"] = evaluate_run(out, gt, pipeline, title=label or config.name)
-    return summary
-
-
-def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") -> Any:
-    """APE/RPE against ground truth, plots and the HTML report of one run."""
-    from slam.eval.metrics import evaluate
-    from slam.eval.plots import plot_all
-    from slam.eval.report import write_report
-    from slam.eval.tables import ape_table, format_table
-
-    result = evaluate(out / "trajectory.tum", gt)
-    (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
-    loops = _loop_positions(pipeline) if pipeline is not None else None
-    images = plot_all(result, out / "plots", loop_positions=loops)
-    table = format_table(ape_table({title: result.ape_trans}), "markdown")
-    metrics = (
-        json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
-    )
-    write_report(
-        out / "report.html",
-        title=f"SLAM run: {title}",
-        tables={"APE (translation, m)": table},
-        images=images,
-        meta={
-            "ground truth": str(gt),
-            **{k: v for k, v in metrics.items() if not isinstance(v, dict)},
-        },
-    )
-    return result
-
-
-def _loop_positions(pipeline: Any) -> list | None:
-    """Pairs of optimised keyframe positions for each accepted loop, for the plots."""
-    st = pipeline.state
-    pairs = []
-    for source in pipeline.factor_sources:
-        for ev in getattr(source.plugin, "events", []):
-            if ev.accepted and ev.source in st.estimates and ev.target in st.estimates:
-                pairs.append(
-                    (st.estimates[ev.target][:3, 3].copy(), st.estimates[ev.source][:3, 3].copy())
-                )
-    return pairs or None
-
-
 def _print_run_summary(summary: dict[str, Any]) -> None:
     out = summary["out"]
     metrics = json.loads((out / "metrics.json").read_text())
@@ -158,6 +41,15 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
         f"{metrics.get('loops_closed', 0)} loop factors, {fps} frames/s, "
         f"peak memory {metrics.get('peak_memory_mb')} MiB"
     )
+    skipped = summary.get("skipped_messages") or {}
+    if skipped:
+        _eprint(
+            f"skipped {sum(skipped.values())} input messages: "
+            + ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items()))
+        )
+    lost = metrics.get("frontend_frames_lost")
+    if lost:
+        _eprint(f"{lost} frames with implausible registration: prediction kept, not mapped")
     if "eval" in summary:
         ape = summary["eval"].ape_trans
         _eprint(
@@ -175,12 +67,26 @@ def _stop_code(summary: dict[str, Any]) -> int:
     return EXIT_INTERRUPTED if stopped.startswith("interrupted") else EXIT_BAD_INPUT
 
 
+def apply_source_args(config: Any, args: argparse.Namespace) -> None:
+    """--start / --max-frames / --strict into the config's source section."""
+    from slam.config import SourceConfig, build_dataclass
+
+    src = config.source
+    values = {
+        "topic": src.topic,
+        "start": args.start if args.start is not None else src.start,
+        "max_frames": args.max_frames if args.max_frames is not None else src.max_frames,
+        "strict": bool(args.strict) or src.strict,
+    }
+    config.source = build_dataclass(SourceConfig, values, "source")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from slam.config import load_config
+    from slam.run import disable_loops, run_one
 
     config = load_config(args.config, args.set)
-    if args.max_frames is not None:
-        config.source.max_frames = args.max_frames
+    apply_source_args(config, args)
     if args.no_loop:
         disable_loops(config)
     out = Path(args.out) if args.out else default_out_dir(config.name)
@@ -212,20 +118,23 @@ def compare(
     overrides: list[str] | None = None,
     topic: str | None = None,
     quiet: bool = False,
-    max_frames: int | None = None,
+    source_args: argparse.Namespace | None = None,
 ) -> dict[str, Any]:
-    """Run each config on the same input; the papers' APE table, plots and report."""
+    """Run each config on the same input; the papers' APE table, plots and report.
+
+    ``source_args``: parsed --start/--max-frames/--strict applied to every config."""
     from slam.config import load_config
     from slam.eval.plots import plot_all
     from slam.eval.report import write_report
     from slam.eval.tables import ape_table, format_table
+    from slam.run import run_one
 
     results: dict[str, Any] = {}
     stops: dict[str, str | None] = {}
     for name in configs:
         config = load_config(name, overrides)
-        if max_frames is not None:
-            config.source.max_frames = max_frames
+        if source_args is not None:
+            apply_source_args(config, source_args)
         summary = run_one(
             bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
         )
@@ -259,7 +168,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         overrides=args.set,
         topic=args.topic,
         quiet=args.quiet,
-        max_frames=args.max_frames,
+        source_args=args,
     )
     print(res["tables"]["text"])
     _eprint(f"table, plots and report written to {out}/")
@@ -441,7 +350,16 @@ def build_parser() -> argparse.ArgumentParser:
             help="override a config value, e.g. --set frontend.sor.k=8",
         )
         q.add_argument("--out", help="output folder (default: runs/<time>-<config>)")
-        q.add_argument("--max-frames", type=int, help="stop after this many frames")
+        q.add_argument(
+            "--start", type=int, metavar="N", help="start at input message N (0-based)"
+        )
+        q.add_argument("--max-frames", type=int, metavar="M", help="stop after M frames")
+        q.add_argument(
+            "--strict",
+            action="store_true",
+            help="stop (exit 2) at the first damaged message or bad stamp instead of "
+            "skipping and counting it",
+        )
         q.add_argument("--quiet", action="store_true", help="no progress bar")
 
     q = sub.add_parser("run", help="run SLAM on a bag / KITTI folder / PCD folder")

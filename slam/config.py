@@ -30,11 +30,23 @@ DEFAULT_CONFIG = "improved_floam"
 
 @dataclass
 class SourceConfig:
-    """Which messages to read: topic (None = the only point-cloud topic), frame range."""
+    """Which messages to read and how to treat damaged ones.
+
+    topic: None = the only point-cloud topic. start: index of the first message used (the
+    ones before are read and ignored). max_frames: stop after this many frames. strict: stop
+    at the first damaged message or bad stamp (default: skip that frame, count it, go on).
+    """
 
     topic: str | None = None
+    start: int = 0
     max_frames: int | None = None
-    skip_frames: int = 0
+    strict: bool = False
+
+    def __post_init__(self) -> None:
+        if self.start < 0:
+            raise ConfigError(f"source.start must be >= 0, got {self.start}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ConfigError(f"source.max_frames must be >= 1, got {self.max_frames}")
 
 
 @dataclass

@@ -20,7 +20,7 @@ from slam import plugins
 from slam.config import SlamConfig
 from slam.errors import InputError
 from slam.factors import GraphView, pose3
-from slam.types import Keyframe, Scan
+from slam.types import Keyframe, Scan, SkippedMessage
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,10 @@ class RunState:
     stage_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     diagnostic_sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     diagnostic_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    skipped_frames: int = 0
+    skipped_frames: int = 0  # frames the front end could not register (prediction kept)
+    skipped_messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    lost_frames: int = 0  # implausible registration: prediction kept, not mapped
+    degenerate_frames: int = 0
     loops_closed: int = 0
     estimates: dict[int, np.ndarray] = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -77,6 +80,11 @@ class RunState:
     @property
     def frames(self) -> int:
         return len(self.stamps)
+
+    @property
+    def messages_skipped(self) -> int:
+        """Input messages dropped before the front end (damaged, duplicated, out of order)."""
+        return int(sum(self.skipped_messages.values()))
 
     def add_diagnostics(self, extras: dict[str, Any]) -> None:
         """Accumulate a frame's numeric front-end diagnostics (counts, *_ms timings)."""
@@ -143,6 +151,10 @@ class Pipeline:
         st.stage_seconds["frontend"] += time.perf_counter() - t0
         if odom.extras.get("skipped"):
             st.skipped_frames += 1
+        if odom.extras.get("lost"):
+            st.lost_frames += 1
+        if odom.extras.get("degenerate"):
+            st.degenerate_frames += 1
         st.add_diagnostics(odom.extras)
         if odom.is_keyframe or not st.keyframes:
             self._add_keyframe(scan, odom)
@@ -191,37 +203,73 @@ class Pipeline:
         self._pending = None
 
     # ------------------------------------------------------------------ whole run
+    def _skip(self, item: SkippedMessage, strict: bool) -> None:
+        """Count a message that cannot be used; one warning per reason (``strict``: stop)."""
+        if strict:
+            raise InputError(f"message {item.index}: {item.detail} (--strict stops at the first)")
+        st = self.state
+        if st.skipped_messages[item.reason] == 0:
+            log.warning(
+                "skipping message %d: %s (further '%s' messages are skipped and counted "
+                "without a warning)",
+                item.index,
+                item.detail,
+                item.reason,
+            )
+        st.skipped_messages[item.reason] += 1
+
+    def _consume(self, item: Scan | SkippedMessage, strict: bool) -> None:
+        """One input item: a damaged message or a stamp not after the last is skipped."""
+        st = self.state
+        if isinstance(item, SkippedMessage):
+            self._skip(item, strict)
+            return
+        if st.stamps and not float(item.stamp) > st.stamps[-1]:
+            kind = "duplicated stamp" if item.stamp == st.stamps[-1] else "stamp out of order"
+            detail = (
+                f"stamp {item.stamp:.9f} s is not after the previous scan's {st.stamps[-1]:.9f} s"
+                " (dropped: the trajectory is never written out of order)"
+            )
+            self._skip(SkippedMessage(item.index, kind, detail), strict)
+            return
+        self.step(item)
+
     def run(
         self,
-        scans: Iterable[Scan],
+        scans: Iterable[Scan | SkippedMessage],
         *,
         on_frame: Callable[[int], None] | None = None,
         max_frames: int | None = None,
-        skip_frames: int = 0,
+        start: int = 0,
+        strict: bool = False,
     ) -> RunState:
-        """Process ``scans`` until exhausted, ``max_frames``, Ctrl-C or a bad message.
+        """Process ``scans`` until exhausted, ``max_frames``, Ctrl-C or unreadable input.
 
-        A KeyboardInterrupt or InputError stops the loop; the state so far is finalised
-        (``state.stopped_by`` says why) and the exception is re-raised by the caller's
-        choice via :meth:`finish`. Never loses computed frames.
+        ``start``: the index of the first input message used (messages before it are read
+        and ignored). A :class:`SkippedMessage` (damaged message, no finite point) and a scan
+        whose stamp is not after the previous one (duplicated, out of order) cost that frame
+        only: counted by reason in ``state.skipped_messages``; with ``strict`` the first one
+        stops the run like unreadable input. A KeyboardInterrupt or an InputError from the
+        source stops the loop; the state so far is finalised (``state.stopped_by`` says why).
+        Never loses computed frames.
         """
         st = self.state
-        start = time.perf_counter()
+        began = time.perf_counter()
         try:
-            for i, scan in enumerate(scans):
-                if i < skip_frames:
+            for i, item in enumerate(scans):
+                if i < start:
                     continue
                 if max_frames is not None and st.frames >= max_frames:
                     break
-                self.step(scan)
+                self._consume(item, strict)
                 if on_frame is not None:
-                    on_frame(st.frames)
+                    on_frame(i + 1 - start)  # messages consumed (frames and skipped ones)
         except KeyboardInterrupt:
             st.stopped_by = "interrupted (Ctrl-C)"
         except InputError as exc:
             st.stopped_by = f"bad input: {exc}"
         finally:
-            st.wall_seconds += time.perf_counter() - start
+            st.wall_seconds += time.perf_counter() - began
             self.finish()
         return st
 

@@ -81,8 +81,8 @@ def make_jobs(
 def run_job(job: SweepJob) -> dict[str, Any]:
     """Run one grid point (in a worker); returns the row of the results table."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from slam.cli import run_one
     from slam.config import load_config
+    from slam.run import run_one
 
     row: dict[str, Any] = {"input": Path(job.bag).name}
     row.update(dict(o.split("=", 1) for o in job.overrides))

@@ -104,10 +104,31 @@ def test_bad_message_half_way_keeps_what_was_computed(tmp_path, corridor_short, 
             data = TS1.serialize_ros1(encode_pointcloud2(s, TS1), PC2)
             w.write(c, int(s.stamp * 1e9), data[:40] if i == 5 else data)
     out = tmp_path / "o"
-    assert main(["run", str(path), "--out", str(out), "--quiet"]) == 2
+    assert main(["run", str(path), "--out", str(out), "--quiet", "--strict"]) == 2
     assert "message 5" in capsys.readouterr().err
     stamps, _ = read_tum(out / "trajectory.tum")
     assert len(stamps) == 5
+    # default: the damaged message costs its frame only, counted in metrics.json
+    out = tmp_path / "skip"
+    assert main(["run", str(path), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "skipped 1 input messages: 1 corrupt message" in err
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 7 and scans[5].stamp not in stamps
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["skipped_messages"] == {"corrupt message": 1} and m["messages_skipped"] == 1
+
+
+def test_start_and_max_frames_pick_a_window(tmp_path, corridor_short):
+    out = tmp_path / "w"
+    assert main(["run", str(corridor_short.bag), "--out", str(out), "--quiet",
+                 "--start", "20", "--max-frames", "5"]) == 0  # fmt: skip
+    stamps, traj = read_tum(out / "trajectory.tum")
+    all_stamps = [s.stamp for s in islice(open_source(corridor_short.bag), 25)]
+    np.testing.assert_allclose(stamps, all_stamps[20:25])
+    np.testing.assert_allclose(traj[0], np.eye(4), atol=1e-12)  # the window starts at the origin
+    assert main(["run", str(corridor_short.bag), "--out", str(tmp_path / "x"), "--quiet",
+                 "--start", "100000"]) == 2  # fmt: skip
 
 
 def test_empty_scans_and_nan_points_do_not_crash(tmp_path, corridor_short):
@@ -118,7 +139,8 @@ def test_empty_scans_and_nan_points_do_not_crash(tmp_path, corridor_short):
     out = tmp_path / "o"
     assert main(["run", str(bag), "--out", str(out), "--quiet"]) == 0
     stamps, traj = read_tum(out / "trajectory.tum")
-    assert len(stamps) == 12 and np.isfinite(traj).all()
+    assert len(stamps) == 11 and np.isfinite(traj).all()  # the empty scan is skipped, counted
+    assert json.loads((out / "metrics.json").read_text())["messages_skipped"] == 1
 
 
 def test_info_prints_topics_and_fields(corridor_short, capsys):
