@@ -220,3 +220,39 @@ def test_unknown_input_lists_accepted_formats(tmp_path):
         open_source(tmp_path / "notes.txt")
     with pytest.raises(InputError, match="not found"):
         open_source(tmp_path / "missing.bag")
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_messy_bag_costs_one_frame_per_bad_message(tmp_path, fmt):
+    """Corrupt, all-NaN, empty and bad-x-datatype messages are skipped with their reason;
+    an unknown datatype on the ring field drops the ring (noted once), not the scan."""
+    path = bag_name(tmp_path, fmt)
+    writer, ts, serialize = open_raw(path, fmt)
+    ref = scans(7, 40)
+    with writer:
+        c = writer.add_connection("/velodyne_points", PC2, typestore=ts)
+        for i, s in enumerate(ref):
+            if i == 2:
+                s = Scan(stamp=s.stamp, xyz=np.full((40, 3), np.nan))
+            if i == 3:
+                s = Scan(stamp=s.stamp, xyz=np.zeros((0, 3)))
+            msg = encode_pointcloud2(s, ts)
+            if i == 4:
+                msg.fields[0].datatype = 11
+            if i in (5, 6):
+                msg.fields[4].datatype = 99  # ring
+            data = serialize(msg, PC2)
+            if i == 1:
+                data = data[:60]
+            writer.write(c, 10**9 * (i + 1), data)
+    src = open_source(path)
+    got = list(src)
+    reasons = [s.reason if isinstance(s, SkippedMessage) else "scan" for s in got]
+    assert reasons == [
+        "scan", "corrupt message", "no finite points", "empty message", "bad field datatype",
+        "scan", "scan",
+    ]  # fmt: skip
+    assert [s.index for s in got] == list(range(7))
+    np.testing.assert_allclose(got[5].xyz, ref[5].xyz, atol=4e-6)
+    assert got[5].ring is None and got[0].ring is not None and got[5].time is not None
+    assert len(src.notes) == 1 and "'ring' has unknown datatype 99" in src.notes[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from shared_data import shared_path
 
 from slam.errors import InputError
 from slam.io.folders import FolderSource, natural_key, stamps_from_names
@@ -12,7 +13,7 @@ from slam.io.info import describe
 from slam.io.kitti import KittiSource
 from slam.io.maps import write_map
 from slam.io.source import open_source
-from slam.types import SkippedMessage
+from slam.types import Scan, SkippedMessage
 
 
 def write_kitti(root, clouds, *, times=None, poses=None, calib=None):
@@ -135,3 +136,160 @@ def test_describe_folder(tmp_path):
     info = describe(root)
     assert info["message_count"] == 4 and info["rate_hz"] == pytest.approx(10.0)
     assert info["first_scan"] == {"points": 7, "intensity": True, "ring": False, "time": False}
+
+
+# ------------------------------------------------------------------ PCD files (numpy reader)
+
+_PCD_TYPE = {"f": "F", "u": "U", "i": "I"}
+
+
+def pcd_bytes(
+    rec: np.ndarray, *, data: str = "binary", trailing: bytes = b"", points=None
+) -> bytes:
+    """A PCD v0.7 file holding the structured array ``rec`` (little endian, packed fields)."""
+    names = rec.dtype.names
+    fmts = [rec.dtype.fields[n][0] for n in names]
+    sizes = [f.base.itemsize for f in fmts]
+    counts = [int(np.prod(f.shape)) if f.shape else 1 for f in fmts]
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(names)}\nSIZE {' '.join(map(str, sizes))}\n"
+        f"TYPE {' '.join(_PCD_TYPE[f.base.kind] for f in fmts)}\n"
+        f"COUNT {' '.join(map(str, counts))}\nWIDTH {rec.size}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {rec.size if points is None else points}\n"
+        f"DATA {data}\n"
+    ).encode()
+    if data == "ascii":
+        cols = [rec[n].reshape(rec.size, -1) for n in names]
+        rows = np.hstack([c.astype(np.float64) for c in cols]) if rec.size else np.zeros((0, 1))
+        body = "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in rows).encode()
+    else:
+        packed = np.dtype([(n, f.newbyteorder("<")) for n, f in zip(names, fmts, strict=True)])
+        body = rec.astype(packed).tobytes()
+    return header + body + trailing
+
+
+def xyzit(n: int, tcode: str = "<f4", seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    rec = np.zeros(n, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                ("intensity", "<f4"), ("time", tcode)]))  # fmt: skip
+    for c in "xyz":
+        rec[c] = rng.uniform(-30, 30, n)
+    rec["intensity"] = rng.uniform(0, 1, n)
+    return rec
+
+
+@pytest.fixture(scope="module")
+def kitti_raw_pcds(tmp_path_factory):
+    """The 22 real HDL-64E PCDs of ../shared/data/kitti_raw_drive, extracted once."""
+    import tarfile
+
+    out = tmp_path_factory.mktemp("kitti_raw")
+    with tarfile.open(shared_path("kitti_raw_drive", "data_1.tar.xz"), "r:xz") as tar:
+        tar.extractall(out, filter="data")
+    return out / "data_1"
+
+
+def test_real_kitti_raw_pcds_with_trailing_bytes(kitti_raw_pcds):
+    files = sorted(kitti_raw_pcds.glob("*.pcd"))
+    assert len(files) == 22
+    src = open_source(kitti_raw_pcds)
+    assert isinstance(src, FolderSource) and len(src) == 22
+    scans = list(src)
+    header = files[0].read_bytes()[:400].decode("ascii", "replace")
+    assert "POINTS 119978" in header and "DATA binary" in header
+    assert files[0].stat().st_size > header.index("DATA binary") + 12 + 119978 * 16  # a tail
+    assert len(scans[0]) == 119978
+    assert all(isinstance(s, Scan) and 110_000 < len(s) < 130_000 for s in scans)
+    assert [s.stamp for s in scans] == [float(i) for i in range(22)]  # numeric file names
+    first = scans[0]
+    r = np.linalg.norm(first.xyz, axis=1)
+    assert 70 < r.max() < 81 and first.intensity.min() >= 0 and first.intensity.max() < 1
+    assert first.ring is None and first.time is None
+    # the same numbers as open3d's reader (which ignores the tail too)
+    ref = o3d.t.io.read_point_cloud(str(files[0]))
+    np.testing.assert_array_equal(first.xyz, ref.point.positions.numpy().astype(np.float64))
+    np.testing.assert_array_equal(first.intensity, ref.point.intensity.numpy()[:, 0])
+
+
+def test_folder_with_an_empty_pcd_in_the_middle(tmp_path):
+    for i in range(5):
+        (tmp_path / f"{i}.pcd").write_bytes(pcd_bytes(xyzit(20 + i, seed=i)))
+    (tmp_path / "2.pcd").write_bytes(b"")
+    (tmp_path / "3.pcd").write_bytes(pcd_bytes(xyzit(0)))  # a valid header with POINTS 0
+    got = list(FolderSource(tmp_path))
+    assert [s.index for s in got] == [0, 1, 2, 3, 4]
+    assert isinstance(got[2], SkippedMessage) and got[2].reason == "empty file"
+    assert "2.pcd" in got[2].detail
+    assert isinstance(got[3], SkippedMessage) and got[3].reason == "empty file"
+    assert [len(got[i]) for i in (0, 1, 4)] == [20, 21, 24]
+    assert [got[i].stamp for i in (0, 1, 4)] == [0.0, 1.0, 4.0]
+
+
+def test_pcd_corrupt_files_are_skipped_with_reasons(tmp_path):
+    good = pcd_bytes(xyzit(10))
+    (tmp_path / "0.pcd").write_bytes(good[:-17])  # truncated data
+    nan = xyzit(4)
+    nan["y"] = np.nan
+    (tmp_path / "1.pcd").write_bytes(pcd_bytes(nan))
+    (tmp_path / "2.pcd").write_bytes(b"\x89PNG not a point cloud")
+    (tmp_path / "3.pcd").write_bytes(good)
+    got = list(FolderSource(tmp_path))
+    assert [getattr(s, "reason", None) for s in got] == [
+        "corrupt file", "no finite points", "corrupt file", None,
+    ]  # fmt: skip
+    assert "truncated" in got[0].detail and len(got[3]) == 10
+
+
+@pytest.mark.parametrize(
+    ("tcode", "scale"), [("<u4", 1e6), ("<f8", 1e9), ("<f4", 1e3), ("<f4", 1.0)]
+)
+def test_pcd_per_point_time_units(tmp_path, tcode, scale):
+    rec = xyzit(50, tcode)
+    sweep = np.linspace(0.0, 0.1, 50)
+    rec["time"] = np.round(sweep * scale) if tcode[1] == "u" else sweep * scale
+    (tmp_path / "7.5.pcd").write_bytes(pcd_bytes(rec))
+    (scan,) = list(FolderSource(tmp_path))
+    np.testing.assert_allclose(scan.time, sweep, atol=1e-6)
+    assert scan.stamp == 7.5
+    np.testing.assert_array_equal(scan.xyz[:, 0], rec["x"].astype(np.float64))
+
+
+def test_pcd_absolute_time_sets_the_stamp(tmp_path):
+    rec = xyzit(5, "<f8")
+    rec["time"] = 1_600_000_000.0 + np.array([0.02, 0.0, 0.04, 0.06, 0.08])
+    (tmp_path / "scan.pcd").write_bytes(pcd_bytes(rec))
+    (scan,) = list(FolderSource(tmp_path))
+    assert scan.stamp == pytest.approx(1_600_000_000.0, abs=1e-6)
+    np.testing.assert_allclose(scan.time, [0.02, 0.0, 0.04, 0.06, 0.08], atol=1e-6)
+
+
+def test_pcd_ascii_count_and_uint16_ring(tmp_path):
+    dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("ring", "<u2"), ("n", "<f4", (3,))])
+    rec = np.zeros(3, dt)
+    rec["x"] = [1.5, 2.5, 3.5]
+    rec["ring"] = [0, 63, 127]
+    rec["n"] = [[9, 8, 7]] * 3
+    (tmp_path / "a.pcd").write_bytes(pcd_bytes(rec, data="ascii", trailing=b"\n\n"))
+    rec["ring"] = [0, 40000, 1]
+    (tmp_path / "b.pcd").write_bytes(pcd_bytes(rec, trailing=b"\x00" * 100))
+    src = FolderSource(tmp_path)
+    a, b = list(src)
+    np.testing.assert_array_equal(a.xyz[:, 0], [1.5, 2.5, 3.5])
+    np.testing.assert_array_equal(a.ring, [0, 63, 127])
+    assert b.ring is None and len(b) == 3 and "ring dropped" in src.notes[0]
+
+
+def test_kitti_empty_and_nan_bins_are_skipped(tmp_path):
+    clouds = [np.ones((5, 4), np.float32), np.full((3, 4), np.nan, np.float32)] + [
+        np.ones((6, 4), np.float32)
+    ]
+    root = write_kitti(tmp_path / "k", clouds)
+    (root / "velodyne" / "000003.bin").write_bytes(b"")
+    got = list(KittiSource(root))
+    assert [s.reason if isinstance(s, SkippedMessage) else len(s) for s in got] == [
+        5,
+        "no finite points",
+        6,
+        "empty file",
+    ]

@@ -16,6 +16,8 @@ from slam.io.pointcloud2 import (
     make_header,
     pointcloud2_time_field,
 )
+from slam.io.points import Notes
+from slam.io.skips import FrameError
 from slam.types import Scan
 
 TS2 = get_typestore(Stores.ROS2_HUMBLE)
@@ -200,3 +202,116 @@ def test_laserscan_decode():
     np.testing.assert_array_equal(out.xyz[:, 2], 0.0)
     np.testing.assert_allclose(out.time, [0.0, 0.001, 0.003], atol=1e-9)
     np.testing.assert_array_equal(out.intensity, [0.0, 1.0, 3.0])
+
+
+# ------------------------------------------------------------------ units, layouts, bad fields
+
+
+def xyzt_cloud(tcode: str, tdatatype: int, times, name: str = "time"):
+    """A 4-point cloud with x = 0..3 and a per-point time field of numpy type ``tcode``."""
+    dt = np.dtype({"names": ["x", "y", "z", name], "formats": ["<f4"] * 3 + ["<" + tcode]})
+    rec = np.zeros(len(times), dtype=dt)
+    rec["x"] = np.arange(len(times))
+    rec[name] = times
+    return raw_cloud([("x", 7), ("y", 7), ("z", 7), (name, tdatatype)], rec)
+
+
+SWEEP = np.array([0.0, 0.025, 0.05, 0.099])  # s
+
+
+@pytest.mark.parametrize(
+    ("tcode", "datatype", "scale", "unit"),
+    [
+        ("u4", 6, 1e6, "us"),  # integer microseconds: read as ns before (1000x too short)
+        ("i4", 5, 1e6, "us"),
+        ("u4", 6, 1e9, "ns"),
+        ("u4", 6, 1e3, "ms"),
+        ("f4", 7, 1e3, "ms"),
+        ("f8", 8, 1e6, "us"),
+        ("f4", 7, 1.0, "s"),
+        ("f8", 8, 1e9, "ns"),
+    ],
+)
+def test_relative_time_units_decode_to_seconds(tcode, datatype, scale, unit):
+    msg = xyzt_cloud(
+        tcode, datatype, np.round(SWEEP * scale) if tcode[0] in "iu" else SWEEP * scale
+    )
+    out = decode_pointcloud2(msg)
+    np.testing.assert_allclose(out.time, SWEEP, atol=1e-7)
+    assert out.stamp == pytest.approx(STAMP, abs=1e-9)  # earliest point at the header stamp
+    tf = pointcloud2_time_field(msg)
+    assert (tf.unit, tf.absolute) == (unit, False)
+
+
+@pytest.mark.parametrize(("scale", "unit"), [(1e9, "ns"), (1e6, "us"), (1e3, "ms"), (1.0, "s")])
+def test_absolute_float64_time_units(scale, unit):
+    # PointField has no 64-bit integer type: absolute times come as float64
+    out_stamp = 1_600_000_000.5
+    msg = xyzt_cloud("f8", 8, (out_stamp + SWEEP) * scale, name="timestamp")
+    out = decode_pointcloud2(msg)
+    atol = 1e-6 if scale < 1e9 else 3e-7  # float64 at 1.6e18 ns resolves 256 ns
+    np.testing.assert_allclose(out.time, SWEEP, atol=atol)
+    assert out.stamp == pytest.approx(out_stamp, abs=1e-6)  # the earliest point's time
+    tf = pointcloud2_time_field(msg)
+    assert (tf.unit, tf.absolute) == (unit, True)
+
+
+def xyz_plus(name: str, code: str, datatype: int, values, count: int = 1):
+    """A cloud with x = 0..n-1, y = z = 0 and one more field (``count`` elements)."""
+    n = len(values)
+    fmt = "<" + code if count == 1 else (np.dtype("<" + code), (count,))
+    dt = np.dtype({"names": ["x", "y", "z", name], "formats": ["<f4"] * 3 + [fmt]})
+    rec = np.zeros(n, dtype=dt)
+    rec["x"] = np.arange(n)
+    rec[name] = np.asarray(values) if count == 1 else np.asarray(values)[:, None] + np.arange(count)
+    msg = raw_cloud([("x", 7), ("y", 7), ("z", 7), (name, datatype)], rec)
+    msg.fields[-1].count = count
+    return msg
+
+
+def test_uint16_ring_above_int16_is_dropped_with_a_note_small_rings_kept():
+    notes = Notes()
+    out = decode_pointcloud2(xyz_plus("ring", "u2", 4, [0, 40000, 65535]), notes=notes)
+    assert out.ring is None and len(out) == 3  # never wrapped into negative beams
+    assert len(notes.lines) == 1 and "ring dropped" in notes.lines[0]
+    out = decode_pointcloud2(xyz_plus("ring", "u4", 6, [0, 127, 32767]))
+    np.testing.assert_array_equal(out.ring, [0, 127, 32767])
+    assert out.ring.dtype == np.int16
+
+
+def test_count_above_one_reads_the_first_element():
+    notes = Notes()
+    out = decode_pointcloud2(xyz_plus("intensity", "f4", 7, [5.0, 6.0, 7.0], count=3), notes=notes)
+    np.testing.assert_array_equal(out.intensity, [5.0, 6.0, 7.0])  # not 6, 7, 8 (element 1)
+    assert "count 3: first element read" in notes.lines[0]
+
+
+def test_unknown_datatype_on_optional_field_drops_it_and_keeps_the_scan():
+    notes = Notes()
+    msg = xyz_plus("intensity", "f4", 7, [1.0, 2.0])
+    msg.fields[-1].datatype = 42
+    for _ in range(3):
+        out = decode_pointcloud2(msg, notes=notes)
+    assert out.intensity is None and out.xyz[:, 0].tolist() == [0.0, 1.0]
+    assert len(notes.lines) == 1 and "unknown datatype 42" in notes.lines[0]  # noted once
+
+
+def test_unknown_datatype_on_x_is_a_frame_error():
+    msg = xyz_plus("intensity", "f4", 7, [1.0, 2.0])
+    msg.fields[0].datatype = 0
+    with pytest.raises(FrameError, match="'x' has unknown datatype 0") as err:
+        decode_pointcloud2(msg)
+    assert err.value.reason == "bad field datatype" and isinstance(err.value, InputError)
+
+
+def test_nan_per_point_times_drop_the_time_field():
+    notes = Notes()
+    out = decode_pointcloud2(xyz_plus("time", "f4", 7, [0.0, np.nan, 0.05]), notes=notes)
+    assert out.time is None and len(out) == 3 and out.stamp == STAMP
+    assert "non-finite per-point times" in notes.lines[0]
+    # times of points dropped for their NaN coordinates do not matter
+    msg = xyz_plus("time", "f4", 7, [0.0, np.nan, 0.05])
+    data = np.frombuffer(bytes(msg.data), np.float32).copy()
+    data[4] = np.nan  # x of point 1 (16-byte records)
+    msg.data = data.view(np.uint8)
+    np.testing.assert_allclose(decode_pointcloud2(msg).time, [0.0, 0.05], atol=1e-9)
