@@ -40,7 +40,7 @@ class FactorConfig:
 
     def __post_init__(self) -> None:
         if self.robust not in ROBUST_KERNELS:
-            raise ValueError(
+            raise ConfigError(
                 f"robust must be one of {', '.join(ROBUST_KERNELS)}, got '{self.robust}'"
             )
 
