@@ -33,21 +33,28 @@ CSV_COLUMNS = (
 )  # fmt: skip
 
 
-def auto_descriptor_params(cloud: np.ndarray, cfg: LoopClosurePlugin.Config) -> ScanContextParams:
-    """Descriptor geometry from the first keyframe, so one default fits rooms and plazas.
+def auto_descriptor_params(
+    clouds: list[np.ndarray], cfg: LoopClosurePlugin.Config
+) -> ScanContextParams:
+    """Descriptor geometry from the sensor's first keyframes, so one default fits rooms,
+    streets and plazas.
 
-    max_radius: 1.2 x the 95th percentile of horizontal ranges, rounded up to 5 m, in
-    [10, 80] m (a corridor gets ~15-25 m, an open plaza the outdoor 80 m cap).
-    lidar_height: depth of the ground below the sensor (2nd percentile of z), >= 0.
-    Fixed for the whole run so that all descriptors share one grid.
+    max_radius: 1.2 x the 99th percentile of the horizontal ranges pooled over ``clouds``,
+    rounded up to 5 m, in [10, 80] m (the sensor's reach in this scene: a corridor gets
+    ~15-25 m, a street 60-75 m, an open plaza the outdoor Scan Context's 80 m). Pooling
+    several keyframes matters: one scan can stand in a short street (an urban Ouster's first
+    keyframe reached 45 m, later ones 50-62 m).
+    lidar_height: median over the keyframes of the ground's depth below the sensor (2nd
+    percentile of z), >= 0. Fixed for the whole run so that all descriptors share one grid.
     """
-    pts = np.asarray(cloud, dtype=float)
-    if len(pts) < 10:
+    pts = [np.asarray(c, dtype=float)[:, :3] for c in clouds if len(c) >= 10]
+    if not pts:
         radius, height = 80.0, 2.0
     else:
-        r95 = float(np.percentile(np.hypot(pts[:, 0], pts[:, 1]), 95))
-        radius = float(np.clip(5.0 * np.ceil(1.2 * r95 / 5.0), 10.0, 80.0))
-        height = max(0.0, -float(np.percentile(pts[:, 2], 2)))
+        r = np.concatenate([np.hypot(c[:, 0], c[:, 1]) for c in pts])
+        r99 = float(np.percentile(r, 99))
+        radius = float(np.clip(5.0 * np.ceil(1.2 * r99 / 5.0), 10.0, 80.0))
+        height = max(0.0, float(np.median([-np.percentile(c[:, 2], 2) for c in pts])))
     if cfg.max_radius > 0:
         radius = cfg.max_radius
     if cfg.lidar_height >= 0:
@@ -63,12 +70,18 @@ class LoopClosurePlugin:
     @dataclass
     class Config(FactorConfig):
         """Descriptor: rings, sectors, max_radius (m), lidar_height (m, added to z).
+        auto_keyframes: with max_radius or lidar_height on auto, the first this many
+        keyframes are buffered and pooled to fix the geometry (they are stored, not queried).
         Search: exclude_recent (keyframes) / exclude_seconds (s) never matched, top_k ring-key
         neighbours, sc_threshold on the Scan Context distance, rebuild_every (KD-tree),
         shift_window (0 = all column shifts), proximity_radius (m, 0 = off).
-        Verification: verify_voxel (m, also the stored clouds' voxel), neighbours (+-n
-        keyframes merged into each local cloud), max_fitness (m), min_overlap (0-1),
-        inlier_distance (m), yaw_tolerance_deg, max_verify (candidates tried per keyframe),
+        Verification (see slam.loop.verify.VerifyParams): verify_voxel (m, also the stored
+        clouds' voxel), neighbours (+-n keyframes merged into each local cloud),
+        max_correspondence / coarse_voxel / coarse_max_correspondence (m, GICP stages),
+        global_search (m, bird's-eye-view start search, 0 = off), max_offset (m), inlier_distance
+        (m) / beam_gap_deg (range-relative neighbour radius), plane_tolerance (m) /
+        plane_range_ratio, max_fitness (m, RMS point-to-plane), min_overlap (0-1),
+        yaw_tolerance_deg, max_verify (candidates tried per keyframe),
         min_keyframe_gap (keyframes after an accepted loop before the next may be accepted),
         consistency_base (m) / consistency_ratio: a registered loop may move the current
         keyframe away from its estimate relative to the candidate by at most base + ratio x
@@ -86,8 +99,9 @@ class LoopClosurePlugin:
         robust_param: float = 1.345
         rings: int = 20
         sectors: int = 60
-        max_radius: float = 0.0  # 0 = auto: from the first keyframe's ranges (indoor/outdoor)
+        max_radius: float = 0.0  # 0 = auto: from the first keyframes' ranges (indoor/outdoor)
         lidar_height: float = -1.0  # < 0 = auto: height of the ground below the sensor
+        auto_keyframes: int = 10  # keyframes pooled for the auto geometry (not queried)
         exclude_recent: int = 30
         exclude_seconds: float = 0.0
         top_k: int = 10
@@ -98,11 +112,16 @@ class LoopClosurePlugin:
         verify_voxel: float = 0.25
         neighbours: int = 0
         max_correspondence: float = 1.0
-        coarse_voxel: float = 1.0
-        coarse_max_correspondence: float = 4.0
+        coarse_voxel: float = 0.5
+        coarse_max_correspondence: float = 2.0
+        global_search: float = 20.0
+        max_offset: float = 20.0
         inlier_distance: float = 0.3
-        max_fitness: float = 0.15
-        min_overlap: float = 0.6
+        beam_gap_deg: float = 2.0
+        plane_tolerance: float = 0.1
+        plane_range_ratio: float = 0.002
+        max_fitness: float = 0.1
+        min_overlap: float = 0.4
         yaw_tolerance_deg: float = 15.0
         max_verify: int = 1
         min_keyframe_gap: int = 0
@@ -115,7 +134,8 @@ class LoopClosurePlugin:
 
         def __post_init__(self) -> None:
             super().__post_init__()
-            for name in ("rings", "sectors", "top_k", "rebuild_every", "max_verify"):
+            for name in ("rings", "sectors", "top_k", "rebuild_every", "max_verify",
+                         "auto_keyframes"):  # fmt: skip
                 if getattr(self, name) < 1:
                     raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
             if self.exclude_recent < 1:
@@ -130,7 +150,8 @@ class LoopClosurePlugin:
 
     def __init__(self, config: Config | None = None):
         self.config = cfg = config or self.Config()
-        self.sc_params: ScanContextParams | None = None  # fixed at the first keyframe
+        self.sc_params: ScanContextParams | None = None  # fixed after auto_keyframes
+        self._pending: list[Keyframe] = []  # keyframes waiting for the auto geometry
         if cfg.max_radius > 0 and cfg.lidar_height >= 0:
             self.sc_params = ScanContextParams(
                 cfg.rings, cfg.sectors, cfg.max_radius, cfg.lidar_height
@@ -152,7 +173,12 @@ class LoopClosurePlugin:
             max_correspondence=cfg.max_correspondence,
             coarse_voxel=cfg.coarse_voxel,
             coarse_max_correspondence=cfg.coarse_max_correspondence,
+            global_search=cfg.global_search,
+            max_offset=cfg.max_offset,
             inlier_distance=cfg.inlier_distance,
+            beam_gap_deg=cfg.beam_gap_deg,
+            plane_tolerance=cfg.plane_tolerance,
+            plane_range_ratio=cfg.plane_range_ratio,
             max_fitness=cfg.max_fitness,
             min_overlap=cfg.min_overlap,
             yaw_tolerance_deg=cfg.yaw_tolerance_deg,
@@ -176,19 +202,18 @@ class LoopClosurePlugin:
         if not cfg.enabled:
             return []
         t0 = time.perf_counter()
-        if self.sc_params is None:
-            self.sc_params = auto_descriptor_params(kf.cloud, cfg)
-            log.info(
-                "scan context: max_radius %.0f m, lidar_height %.2f m (auto)",
-                self.sc_params.max_radius,
-                self.sc_params.lidar_height,
-            )
-        desc = scan_context(kf.cloud, self.sc_params)
-        self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
         self._clouds[kf.id] = self._downsample(kf.cloud)
+        pending = self.sc_params is None
+        if pending:
+            self._pending.append(kf)
+            if len(self._pending) >= cfg.auto_keyframes:
+                self._fix_descriptor_params()
+        else:
+            desc = scan_context(kf.cloud, self.sc_params)
+            self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
         step = float(np.linalg.norm(np.asarray(kf.relative)[:3, 3])) if kf.id > 0 else 0.0
         self._travel[kf.id] = self._travel.get(kf.id - 1, 0.0) + step
-        candidates = self._candidates(kf, desc, graph)
+        candidates = [] if pending else self._candidates(kf, desc, graph)
         self.detect_ms.append(1e3 * (time.perf_counter() - t0))
         if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
             return []
@@ -199,6 +224,17 @@ class LoopClosurePlugin:
             self.verify_ms.append(1e3 * (time.perf_counter() - t1))
 
     # ------------------------------------------------------------------ steps
+    def _fix_descriptor_params(self) -> None:
+        """Fix the Scan Context geometry from the buffered keyframes and describe them."""
+        self.sc_params = auto_descriptor_params([k.cloud for k in self._pending], self.config)
+        log.info(
+            "scan context: max_radius %.0f m, lidar_height %.2f m (auto, %d keyframes)",
+            self.sc_params.max_radius, self.sc_params.lidar_height, len(self._pending),
+        )  # fmt: skip
+        for k in self._pending:
+            self._row_of[k.id] = self.db.add(k.id, k.stamp, scan_context(k.cloud, self.sc_params))
+        self._pending = []
+
     def _downsample(self, cloud: np.ndarray) -> np.ndarray:
         pts = np.ascontiguousarray(np.asarray(cloud, dtype=np.float64)[:, :3])
         if len(pts) == 0:

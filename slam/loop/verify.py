@@ -1,59 +1,91 @@
-"""Geometric verification of a loop candidate by GICP (small_gicp), coarse then fine.
+"""Geometric verification of a loop candidate: global 2D start, GICP schedule, fine-scale judge.
 
 The source (current keyframe's local cloud) is registered against the target (the
-candidate's) from the descriptor's yaw guess. A candidate passes only if the fine
-registration converged, the RMSE of inlier distances (``fitness``) is small, the share
-of source points with a target neighbour (``overlap``) is large, and the registered yaw
-agrees with the guess. The 6x6 information comes from the registration's Hessian.
+candidate's). Scan Context gives only a yaw, and two passes of the same street may lie
+10-20 m apart, so besides the given start a second start comes from a bird's-eye-view
+correlation of the two clouds (:func:`bev_translation`: occupancy images of the non-ground
+points, FFT cross-correlation over a few yaws around the guess). From every start a
+coarse-to-fine GICP schedule runs, and each stage's result is kept only if it raises the
+fine-scale score (share of structured source points that meet a target surface): a coarse
+stage with long correspondences can slide a correct start metres along a road, and such a
+result scores worse at the fine scale and is discarded. The best-scoring result is judged:
 
-small_gicp linearises ``T * Exp(delta)`` with ``delta = (rotation, translation)``
-(its Jacobian is ``[R skew(p), -R]``), the same tangent ordering and side as GTSAM's
-Pose3, so ``H`` is used as is (``tests/test_loop_plugin.py`` checks the ordering).
+- overlap: share of structured, steep source points with a target neighbour within a
+  radius that grows with the point's range (the target's rings spread apart with range:
+  ``inlier_distance`` near, ``tan(beam_gap) * range`` far) whose point-to-plane distance
+  is within ``plane_tolerance`` (+ ``plane_range_ratio * range``, beam divergence);
+- fitness: RMS point-to-plane distance (m) of those inliers, which unlike point-to-point
+  distances does not depend on the two scans' sampling densities;
+- the registered yaw agrees with the guess.
+
+The 6x6 information comes from the fine registration's Hessian through
+:func:`slam.registration.information.information_from_hessian` (scaled by the residual
+variance, eigenvalues clamped to the loop's sigma floors). small_gicp linearises
+``T * Exp(delta)`` with ``delta = (rotation, translation)``, the same tangent ordering and
+side as GTSAM's Pose3, so ``H`` is used as is (``tests/test_loop_plugin.py`` checks it).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import small_gicp
 
 from slam.features.curvature import local_covariances
+from slam.registration.information import InformationConfig, information_from_hessian
 
 # lambda_min / (lambda_1 + lambda_2 + lambda_3) of a point's neighbourhood below which it lies on
 # a surface or a line (a plane with 1-2 cm noise over a 0.5 m support: ~0.003; isotropic
 # scatter such as a tree crown: up to 1/3)
 MAX_SURFACE_VARIATION = 0.05
 SHAPE_NEIGHBOURS = 10
+MIN_JUDGED_POINTS = 50
 
 
 @dataclass(frozen=True)
 class VerifyParams:
-    """voxel: fine downsampling (m); coarse stage uses coarse_voxel and coarse_max_corr.
-    inlier_distance (m): a source point with a target neighbour closer than this overlaps.
-    max_fitness: max RMSE (m) of inlier distances. min_overlap: min inlier share (0-1).
-    yaw_tolerance_deg: max |registered yaw - guess yaw|. min_sigma_*: the best direction's
-    sigma after scaling the Hessian; max_sigma_ratio caps the weakest direction's sigma."""
+    """voxel / max_correspondence (m): the fine GICP stage; coarse_voxel /
+    coarse_max_correspondence (m): the coarse stage (kept only if it improves the fine score).
+    global_search (m): radius of the bird's-eye-view translation search (0 = off), on a grid
+    of bev_cell (m), over yaws of bev_yaw_offsets_deg around the guess. max_offset (m): a
+    registered offset longer than this is no revisit (the two scans would barely overlap).
+    max_judged: the score uses at most this many source points (an even subsample).
+    inlier_distance (m): neighbour radius near the sensor; beam_gap_deg: far away the radius
+    is tan(beam_gap) x range (the coarsest common ring spacing, 16 beams over 30 deg: 2 deg).
+    plane_tolerance (m) + plane_range_ratio x range: max point-to-plane distance of an inlier.
+    max_fitness: max RMS point-to-plane distance (m) of inliers. min_overlap: min inlier share.
+    yaw_tolerance_deg: max |registered yaw - guess yaw|. min_sigma_*: sigma floor of the
+    loop's information; max_sigma_ratio caps the weakest direction's sigma at that multiple."""
 
     voxel: float = 0.25
     max_correspondence: float = 1.0
-    coarse_voxel: float = 1.0
-    coarse_max_correspondence: float = 4.0
+    coarse_voxel: float = 0.5
+    coarse_max_correspondence: float = 2.0
+    global_search: float = 20.0
+    max_offset: float = 20.0
+    bev_cell: float = 0.5
+    bev_yaw_offsets_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
     max_iterations: int = 30
     inlier_distance: float = 0.3
-    max_fitness: float = 0.15
-    min_overlap: float = 0.6
+    beam_gap_deg: float = 2.0
+    plane_tolerance: float = 0.1
+    plane_range_ratio: float = 0.002
+    max_fitness: float = 0.1
+    min_overlap: float = 0.4
     yaw_tolerance_deg: float = 15.0
     min_sigma_trans: float = 0.01
     min_sigma_rot_deg: float = 0.1
     max_sigma_ratio: float = 100.0
+    max_judged: int = 3000
     num_threads: int = 1
 
 
 @dataclass
 class VerifyResult:
     """Outcome: T_target_source after GICP, fitness (m), overlap (0-1), yaw (deg) of the
-    result, info (6x6, rotation first), accepted and the reason when rejected."""
+    result, info (6x6, rotation first), accepted and the reason when rejected; start: which
+    start won ("guess" or "bev"), stages: names of the GICP stages kept."""
 
     accepted: bool
     T_target_source: np.ndarray
@@ -62,6 +94,8 @@ class VerifyResult:
     yaw_deg: float
     info: np.ndarray
     reason: str = ""
+    start: str = "guess"
+    stages: list[str] = field(default_factory=list)
 
 
 def yaw_of(T: np.ndarray) -> float:
@@ -89,62 +123,172 @@ def scaled_information(
 ) -> np.ndarray:
     """A plausible 6x6 information (rotation first) from a registration Hessian.
 
-    Raw GICP Hessians are 1e6-1e9 (thousands of points, mm-thin covariances). Whiten by
-    the floor sigmas, scale so the best-determined direction has exactly the floor sigma
-    (min_sigma_rot rad, min_sigma_trans m), keep the Hessian's shape, and lift the
-    weak (degenerate) directions to at most max_sigma_ratio times the floor.
+    Raw GICP Hessians are 1e6-1e9 (thousands of points, mm-thin covariances) and claim
+    sub-millimetre sigmas: the best-determined direction gets exactly the floor sigma
+    (min_sigma_rot rad, min_sigma_trans m), the Hessian's shape is kept, and weak
+    (degenerate) directions are lifted to at most max_sigma_ratio times the floor. This is
+    :func:`information_from_hessian` with the residual variance chosen so the best direction
+    sits on the floor.
     """
     floor = np.array([min_sigma_rot] * 3 + [min_sigma_trans] * 3)
-    Hs = 0.5 * (H + H.T)
+    Hs = 0.5 * (np.asarray(H, dtype=np.float64) + np.asarray(H, dtype=np.float64).T)
     W = Hs * floor[:, None] * floor[None, :]
-    if not np.all(np.isfinite(W)):
-        W = np.zeros((6, 6))
-    w, V = np.linalg.eigh(W)
-    top = w.max()
-    w = w / top if top > 0 else np.zeros(6)
-    w = np.clip(w, 1.0 / max_sigma_ratio**2, 1.0)
-    Wn = (V * w) @ V.T
-    return Wn / floor[:, None] / floor[None, :]
+    top = float(np.linalg.eigvalsh(W).max()) if np.all(np.isfinite(W)) else 0.0
+    cfg = InformationConfig(
+        min_sigma_translation=min_sigma_trans,
+        min_sigma_rotation_deg=float(np.degrees(min_sigma_rot)),
+        max_sigma_translation=min_sigma_trans * max_sigma_ratio,
+        max_sigma_rotation_deg=float(np.degrees(min_sigma_rot)) * max_sigma_ratio,
+    )
+    if top <= 0.0:
+        return information_from_hessian(np.zeros((6, 6)), 1.0, cfg).info
+    return information_from_hessian(Hs, top, cfg).info
 
 
-def _points(cloud: small_gicp.PointCloud) -> np.ndarray:
-    return np.asarray(cloud.points())[:, :3]
+# ----------------------------------------------------------------------------- global start
 
 
-def _fit_and_overlap(
-    source: small_gicp.PointCloud,
-    target_tree: small_gicp.KdTree,
-    T: np.ndarray,
-    inlier_distance: float,
-    num_threads: int,
-) -> tuple[float, float]:
-    """RMSE (m) of inlier nearest-neighbour distances and inlier share of the source points.
+def _bev_image(xy: np.ndarray, cell: float, half: int) -> np.ndarray:
+    """Binary occupancy (2 half, 2 half) of points ``xy`` (N, 2) on a grid centred at 0."""
+    ij = np.floor(xy / cell).astype(np.int64) + half
+    ok = np.all((ij >= 0) & (ij < 2 * half), axis=1)
+    img = np.zeros((2 * half, 2 * half), dtype=np.float64)
+    img[ij[ok, 0], ij[ok, 1]] = 1.0
+    return img
 
-    Only points on steep, structured surfaces are counted when there are enough of them:
-    steep (|normal_z| < 0.7: walls, poles, trunks, facades) because ground and ceiling
-    overlap in almost any two indoor scans and would make unrelated places look alike;
+
+def _above_ground(points: np.ndarray) -> np.ndarray:
+    """Points more than 0.5 m above the scan's ground level (its 5th height percentile):
+    walls, poles, parked cars: what fixes a horizontal position (the ground does not)."""
+    z = points[:, 2]
+    return points[z > np.percentile(z, 5) + 0.5]
+
+
+def bev_translation(
+    target: np.ndarray,
+    source: np.ndarray,
+    yaw: float,
+    search: float,
+    cell: float = 0.5,
+    yaw_offsets_deg: tuple[float, ...] = (0.0,),
+) -> tuple[np.ndarray, float]:
+    """A 4x4 start T_target_source from a bird's-eye-view correlation, and its peak share.
+
+    The above-ground points of both clouds become occupancy images (``cell`` m); for each
+    yaw ``yaw + offset`` the rotated source image is cross-correlated with the target's by
+    FFT and the best shift within ``search`` m is taken; the yaw and shift of the highest
+    peak win. peak share: correlation peak / occupied source cells (0-1).
+    """
+    tgt, src = _above_ground(target), _above_ground(source)
+    half = int(np.ceil((search + 30.0) / cell))  # image covers +-(search + 30) m
+    n = 2 * half
+    ft = np.fft.rfft2(_bev_image(tgt[:, :2], cell, half), s=(2 * n, 2 * n))
+    shifts = np.fft.fftfreq(2 * n, 1.0 / (2 * n)).astype(np.int64)  # index -> signed shift
+    reach = np.abs(shifts) * cell <= search
+    best = (-1.0, 0.0, 0, 0, 1.0)
+    for off in yaw_offsets_deg:
+        y = yaw + np.radians(off)
+        c, s = np.cos(y), np.sin(y)
+        xy = src[:, :2] @ np.array([[c, s], [-s, c]])
+        img = _bev_image(xy, cell, half)
+        occupied = max(float(img.sum()), 1.0)
+        # corr[t] = sum_x target[x + t] * source[x]
+        corr = np.fft.irfft2(ft * np.conj(np.fft.rfft2(img, s=(2 * n, 2 * n))), s=(2 * n, 2 * n))
+        corr[~reach, :] = -1.0
+        corr[:, ~reach] = -1.0
+        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        if corr[i, j] > best[0]:
+            best = (float(corr[i, j]), y, int(shifts[i]), int(shifts[j]), occupied)
+    peak, y, di, dj, occupied = best
+    return yaw_matrix(y, np.array([di * cell, dj * cell, 0.0])), peak / occupied
+
+
+# ----------------------------------------------------------------------------- fine judge
+
+
+@dataclass
+class _Prepared:
+    """A cloud downsampled at one voxel size with its normals/covariances and KD-tree."""
+
+    cloud: small_gicp.PointCloud
+    tree: small_gicp.KdTree
+    points: np.ndarray
+    normals: np.ndarray
+
+
+def _prepare(points: np.ndarray, voxel: float, num_threads: int) -> _Prepared:
+    cloud, tree = small_gicp.preprocess_points(points, voxel, num_threads=num_threads)
+    return _Prepared(
+        cloud, tree, np.asarray(cloud.points())[:, :3], np.asarray(cloud.normals())[:, :3]
+    )
+
+
+def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> np.ndarray:
+    """The source points a verification is judged on.
+
+    Steep (|normal_z| < 0.7 after rotation R: walls, poles, trunks, facades) because ground
+    and ceiling overlap in almost any two scans and would make unrelated places look alike;
     structured (surface variation lambda_min / trace < MAX_SURFACE_VARIATION: a plane or a
     line) because foliage and mixed pixels scatter in depth, so even a perfect alignment of
-    a tree crown leaves ~0.15-0.2 m between nearest neighbours and would fail the fitness
-    test in any vegetated place.
+    a tree crown leaves ~0.15-0.2 m between nearest neighbours. Falls back to all steep (or
+    all) points when fewer than MIN_JUDGED_POINTS qualify. At most ``max_points`` steep points
+    are examined (an even subsample: the score is a share, known to ~1 % from 3000 points).
     """
-    pts = _points(source)
-    steep = np.abs(np.asarray(source.normals())[:, :3] @ T[:3, :3].T[:, 2]) < 0.7
-    steep_idx = np.flatnonzero(steep)
-    if len(steep_idx) >= 50:
-        # shape of the steep points only (neighbours among all points), from raw covariances:
-        # small_gicp's are regularised to planes and carry no shape
-        cov = local_covariances(pts, SHAPE_NEIGHBOURS, query_idx=steep_idx)
-        ev = np.linalg.eigvalsh(cov)  # ascending
-        structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
-        pts = pts[steep_idx[structured]] if structured.sum() >= 50 else pts[steep_idx]
-    moved = pts @ T[:3, :3].T + T[:3, 3]
-    _, sq = target_tree.batch_nearest_neighbor_search(moved, num_threads=num_threads)
+    pts = source.points
+    steep_idx = np.flatnonzero(np.abs(source.normals @ R.T[:, 2]) < 0.7)
+    if len(steep_idx) < MIN_JUDGED_POINTS:
+        return pts
+    if len(steep_idx) > max_points:
+        steep_idx = steep_idx[np.linspace(0, len(steep_idx) - 1, max_points).astype(np.intp)]
+    # shape of the steep points only (neighbours among all points), from raw covariances:
+    # small_gicp's are regularised to planes and carry no shape
+    cov = local_covariances(pts, SHAPE_NEIGHBOURS, query_idx=steep_idx)
+    ev = np.linalg.eigvalsh(cov)  # ascending
+    structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
+    if structured.sum() >= MIN_JUDGED_POINTS:
+        return pts[steep_idx[structured]]
+    return pts[steep_idx]
+
+
+def alignment_score(
+    judged: np.ndarray, target: _Prepared, T: np.ndarray, p: VerifyParams
+) -> tuple[float, float]:
+    """(overlap 0-1, fitness m) of ``judged`` source points moved by T onto the target.
+
+    A point is an inlier when its nearest target point lies within
+    max(inlier_distance, tan(beam_gap) x range) and its distance to that point's plane
+    within plane_tolerance + plane_range_ratio x range (range: from the target's sensor).
+    fitness: RMS point-to-plane distance of the inliers (inf without inliers).
+    """
+    moved = judged @ T[:3, :3].T + T[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=p.num_threads)
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     sq = np.asarray(sq, dtype=np.float64).reshape(-1)
-    inl = sq < inlier_distance**2
-    overlap = float(inl.mean()) if len(sq) else 0.0
-    fitness = float(np.sqrt(np.mean(sq[inl]))) if inl.any() else float("inf")
-    return fitness, overlap
+    if len(sq) == 0:
+        return 0.0, float("inf")
+    rng = np.linalg.norm(moved, axis=1)
+    radius = np.maximum(p.inlier_distance, np.tan(np.radians(p.beam_gap_deg)) * rng)
+    found = (idx >= 0) & (sq < radius**2)
+    k = np.where(found, idx, 0)
+    plane = np.abs(np.einsum("ij,ij->i", moved - target.points[k], target.normals[k]))
+    inl = found & (plane < p.plane_tolerance + p.plane_range_ratio * rng)
+    overlap = float(inl.mean())
+    fitness = float(np.sqrt(np.mean(plane[inl] ** 2))) if inl.any() else float("inf")
+    return overlap, fitness
+
+
+def _align(t: _Prepared, s: _Prepared, T: np.ndarray, corr: float, p: VerifyParams):
+    return small_gicp.align(
+        t.cloud, s.cloud, t.tree, init_T_target_source=T, registration_type="GICP",
+        max_correspondence_distance=corr, max_iterations=p.max_iterations,
+        num_threads=p.num_threads,
+    )  # fmt: skip
+
+
+def _rejected(T: np.ndarray, reason: str) -> VerifyResult:
+    return VerifyResult(
+        False, np.asarray(T, float), np.inf, 0.0, np.degrees(yaw_of(T)), np.zeros((6, 6)), reason
+    )
 
 
 def verify(
@@ -155,40 +299,53 @@ def verify(
 ) -> VerifyResult:
     """Register ``source`` (N, 3) onto ``target`` (M, 3) from the initial guess and judge it."""
     p = params
-    guess_yaw = yaw_of(init_T_target_source)
+    T0 = np.asarray(init_T_target_source, dtype=np.float64)
+    guess_yaw = yaw_of(T0)
     if len(target) < 10 or len(source) < 10:
-        return VerifyResult(
-            False, np.asarray(init_T_target_source, float), np.inf, 0.0,
-            np.degrees(guess_yaw), np.zeros((6, 6)), "too few points",
+        return _rejected(T0, "too few points")
+    tgt = np.ascontiguousarray(np.asarray(target, dtype=np.float64)[:, :3])
+    src = np.ascontiguousarray(np.asarray(source, dtype=np.float64)[:, :3])
+    ft, fs = _prepare(tgt, p.voxel, p.num_threads), _prepare(src, p.voxel, p.num_threads)
+    coarse = p.coarse_voxel > p.voxel
+    if coarse:
+        ct, cs = (_prepare(tgt, p.coarse_voxel, p.num_threads),
+                  _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
+    judged = judged_points(fs, T0[:3, :3], p.max_judged)
+    starts = [("guess", T0)]
+    if p.global_search > 0.0:
+        T_bev, _ = bev_translation(
+            ct.points if coarse else tgt, cs.points if coarse else src, guess_yaw,
+            p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
         )  # fmt: skip
-    tgt = np.ascontiguousarray(target, dtype=np.float64)
-    src = np.ascontiguousarray(source, dtype=np.float64)
-    T = np.asarray(init_T_target_source, dtype=np.float64)
-    if p.coarse_voxel > p.voxel:
-        ct, ct_tree = small_gicp.preprocess_points(tgt, p.coarse_voxel, num_threads=p.num_threads)
-        cs, _ = small_gicp.preprocess_points(src, p.coarse_voxel, num_threads=p.num_threads)
-        coarse = small_gicp.align(
-            ct, cs, ct_tree, init_T_target_source=T, registration_type="GICP",
-            max_correspondence_distance=p.coarse_max_correspondence,
-            max_iterations=p.max_iterations, num_threads=p.num_threads,
-        )  # fmt: skip
-        T = coarse.T_target_source
-    ft, ft_tree = small_gicp.preprocess_points(tgt, p.voxel, num_threads=p.num_threads)
-    fs, _ = small_gicp.preprocess_points(src, p.voxel, num_threads=p.num_threads)
-    fine = small_gicp.align(
-        ft, fs, ft_tree, init_T_target_source=T, registration_type="GICP",
-        max_correspondence_distance=p.max_correspondence,
-        max_iterations=p.max_iterations, num_threads=p.num_threads,
-    )  # fmt: skip
-    T = np.array(fine.T_target_source)
-    fitness, overlap = _fit_and_overlap(fs, ft_tree, T, p.inlier_distance, p.num_threads)
+        starts.append(("bev", T_bev))
+    best = None
+    for name, T in starts:  # coarse stage per start, kept only if it improves the fine score
+        score = alignment_score(judged, ft, T, p)
+        kept = []
+        if coarse:
+            c = _align(ct, cs, T, p.coarse_max_correspondence, p)
+            c_score = alignment_score(judged, ft, c.T_target_source, p)
+            if c_score[0] > score[0]:
+                T, score = np.array(c.T_target_source), c_score
+                kept.append("coarse")
+        if best is None or score[0] > best[2][0]:
+            best = (name, T, score, kept)
+    name, T, score, kept = best
+    fine = _align(ft, fs, T, p.max_correspondence, p)  # the accurate stage, from the best start
+    f_score = alignment_score(judged, ft, fine.T_target_source, p)
+    if fine.converged or f_score[0] > score[0]:
+        T, score = np.array(fine.T_target_source), f_score
+        kept.append("fine")
+    overlap, fitness = score
     yaw = yaw_of(T)
     info = scaled_information(
         np.asarray(fine.H), p.min_sigma_trans, np.radians(p.min_sigma_rot_deg), p.max_sigma_ratio
     )
     reason = ""
-    if not fine.converged:
+    if "fine" not in kept or not fine.converged:
         reason = "gicp did not converge"
+    elif np.linalg.norm(T[:3, 3]) > p.max_offset:
+        reason = f"offset {np.linalg.norm(T[:3, 3]):.1f} m > {p.max_offset:.1f} m"
     elif overlap < p.min_overlap:
         reason = f"overlap {overlap:.2f} < {p.min_overlap:.2f}"
     elif fitness > p.max_fitness:
@@ -197,4 +354,6 @@ def verify(
         reason = (
             f"yaw {np.degrees(yaw):.1f} deg disagrees with guess {np.degrees(guess_yaw):.1f} deg"
         )
-    return VerifyResult(not reason, T, fitness, overlap, float(np.degrees(yaw)), info, reason)
+    return VerifyResult(
+        not reason, T, fitness, overlap, float(np.degrees(yaw)), info, reason, name, kept
+    )
