@@ -99,10 +99,16 @@ def test_xyz_and_rpy_over_time(res, close):
         np.testing.assert_allclose(lines["estimate"][:, 0], res.stamps - res.stamps[0])
     fig = plots.rpy_figure(res)
     close(fig)
-    rpy = Rotation.from_matrix(res.gt_poses[:, :3, :3]).as_euler("xyz", degrees=True)  # sxyz
-    assert np.ptp(rpy[:, 2]) > 300  # a whole turn of yaw
+    rpy = Rotation.from_matrix(res.gt_poses[:, :3, :3]).as_euler("xyz")  # evo's sxyz
+    rpy = np.degrees(np.unwrap(rpy, axis=0))
+    assert np.ptp(rpy[:, 2]) > 350  # a whole turn of yaw, through +-180 deg
     for k, ax in enumerate(fig.axes):
-        np.testing.assert_allclose(lines_by_label(ax)["ground truth"][:, 1], rpy[:, k], atol=1e-9)
+        lines = lines_by_label(ax)
+        np.testing.assert_allclose(lines["ground truth"][:, 1], rpy[:, k], atol=1e-9)
+        est = lines["estimate"][:, 1]
+        assert np.abs(np.diff(est)).max() < 10  # no jump at +-180 deg
+        assert np.abs(est - rpy[:, k]).max() < 1  # same branch as the ground truth
+        assert ax.get_ylim()[1] >= rpy[:, k].max()  # rescaled to the unwrapped data
 
 
 def test_speed_is_distance_over_time(res, close):

@@ -173,8 +173,23 @@ def xyz_figure(result: EvalResult):
 
 
 def rpy_figure(result: EvalResult):
-    """Roll, pitch, yaw (deg, evo's ``euler_angle_sequence``) of both over time."""
-    return _stacked(result, evo_plot().traj_rpy, "Orientation over time")
+    """Roll, pitch, yaw (deg, evo's ``euler_angle_sequence``) of both over time.
+
+    evo draws the angles wrapped to (-180, 180]; a drive that heads near +-180 deg then
+    flickers between the two ends. Each angle is unwrapped after drawing, the estimate on
+    the ground truth's branch (the nearest multiple of 360 deg per pose).
+    """
+    fig = _stacked(result, evo_plot().traj_rpy, "Orientation over time (unwrapped)")
+    for ax in fig.axes:
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        gt, est = lines[GT_LABEL], lines[EST_LABEL]
+        gt_deg = np.degrees(np.unwrap(np.radians(gt.get_ydata())))
+        est_deg = np.asarray(est.get_ydata(), dtype=float)
+        gt.set_ydata(gt_deg)
+        est.set_ydata(est_deg + 360.0 * np.round((gt_deg - est_deg) / 360.0))
+        ax.relim()
+        ax.autoscale_view()
+    return fig
 
 
 def speed_figure(result: EvalResult):
