@@ -1,40 +1,48 @@
 """LOAM edge/plane features per scan ring (A-LOAM / F-LOAM selection), fully vectorised.
 
 All rings are processed in one pass over the ring-sorted concatenated cloud with ring
-boundaries masked. Selection = A-LOAM's greedy "pick the sharpest, suppress 5 neighbours
-each side unless a gap lies between", computed as an exact parallel non-maximum suppression
-(rounds of numpy operations, no per-point Python loop), then a per-sector top-N; for the few
-flats per sector the NMS runs only on each sector's best candidates (same result, see
-``_sector_top_picks``).
+boundaries masked. Edge selection = A-LOAM's greedy "pick the sharpest, suppress 5
+neighbours each side unless a gap lies between", computed as an exact parallel non-maximum
+suppression (rounds of numpy operations, no per-point Python loop), then a per-sector
+top-N. Planes are every other low-curvature point (A-LOAM's "less flat" set); the scan-to-map
+front ends downsample them. Every count is per ring and sector, so the feature count scales
+with the beam count (16-128 beams); rings come from the driver or from ``slam.sensor``.
 Optional curvature correction (improved FLOAM, paper 000, section 2.3) rejects pseudo-edges
 and pseudo-planes with the covariance curvature kappa = tr(Sigma)/||Sigma||_F.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from slam.errors import ConfigError, InputError
 from slam.features.curvature import KAPPA_VOLUME, covariance_curvature
+from slam.sensor import estimate_beams
 
 
 @dataclass
 class FeatureConfig:
     """LOAM feature settings (A-LOAM/F-LOAM defaults). Distances in m, gaps in m^2.
 
+    n_beams/fov_deg: how to guess rings when the scan has none: n_beams = 0 (default) infers
+    the beam table from the scan itself (``slam.sensor.estimate_beams``: point layout or
+    elevation histogram, any beam count); n_beams > 0 spreads that many beams evenly over
+    fov_deg (deg). The pipeline normally fills the ring once per sensor, so neither is used.
     window: neighbours each side for the curvature c = ||sum_j (p_j - p_i)||^2 (m^2) and for
     suppression. edge_threshold/plane_threshold: c above -> edge candidate, below -> plane.
-    max_sharp/max_less_sharp/max_flat: per sector. neighbor_gap: squared gap between consecutive
-    ring points that stops suppression. reject_occluded/reject_parallel: LOAM's two rejections
-    (occlusion_gap m^2 and occlusion_ratio as in LOAM; parallel_ratio * range^2 bound on both
-    consecutive squared gaps). use_covariance_curvature: drop edge candidates whose kNN
+    max_less_sharp: edges per ring and sector. max_sharp/max_flat: unused (A-LOAM's
+    frame-to-frame picks were removed; the keys stay so that older recipes load).
+    neighbor_gap: squared gap between consecutive ring points that stops suppression.
+    reject_occluded/reject_parallel: LOAM's two rejections (occlusion_gap m^2 and
+    occlusion_ratio as in LOAM; parallel_ratio * range^2 bound on both consecutive squared
+    gaps). use_covariance_curvature: drop edge candidates whose kNN
     neighbourhood (cov_k points) is planar (kappa > kappa_edge_max) and plane points whose
     neighbourhood is volumetric scatter (kappa > kappa_plane_max); see ``extract_features``.
     """
 
-    n_beams: int = 16
+    n_beams: int = 0
     fov_deg: tuple[float, float] = (-15.0, 15.0)
     window: int = 5
     n_sectors: int = 6
@@ -57,8 +65,8 @@ class FeatureConfig:
     kappa_plane_max: float = 1.6
 
     def __post_init__(self) -> None:
-        if self.window < 1 or self.n_sectors < 1 or self.n_beams < 1:
-            raise ConfigError("features: window, n_sectors and n_beams must be >= 1")
+        if self.window < 1 or self.n_sectors < 1 or self.n_beams < 0:
+            raise ConfigError("features: window and n_sectors must be >= 1, n_beams >= 0")
         if len(self.fov_deg) != 2 or not self.fov_deg[0] < self.fov_deg[1]:
             raise ConfigError(f"features.fov_deg must be (low, high) degrees, got {self.fov_deg}")
 
@@ -69,9 +77,8 @@ def _empty_idx() -> np.ndarray:
 
 @dataclass
 class Features:
-    """Indices into the input xyz. edge_idx: less-sharp edges (sharp included); plane_idx:
-    less-flat planes (every non-edge point with c < plane_threshold; downsample before use);
-    sharp_idx/flat_idx: the few strongest per sector (A-LOAM's frame-to-frame sets).
+    """Indices into the input xyz. edge_idx: A-LOAM's less-sharp edges; plane_idx: less-flat
+    planes (every non-edge point with c < plane_threshold; downsample before use).
     curvature: (N,) LOAM c in m^2 per input point, NaN where undefined (ring ends, dropped).
     kappa: (N,) covariance curvature when use_covariance_curvature, else None; computed only
     where a decision needs it (NMS-picked edge candidates, plane candidates), NaN elsewhere.
@@ -80,16 +87,21 @@ class Features:
     edge_idx: np.ndarray
     plane_idx: np.ndarray
     curvature: np.ndarray
-    sharp_idx: np.ndarray = field(default_factory=_empty_idx)
-    flat_idx: np.ndarray = field(default_factory=_empty_idx)
     kappa: np.ndarray | None = None
 
 
 def ring_from_elevation(
-    xyz: np.ndarray, n_beams: int = 16, fov_deg: tuple[float, float] = (-15.0, 15.0)
+    xyz: np.ndarray, n_beams: int = 0, fov_deg: tuple[float, float] = (-15.0, 15.0)
 ) -> np.ndarray:
-    """(N,) int16 beam index from each point's elevation, beams evenly spread over fov_deg."""
+    """(N,) int16 beam index of each point of a scan without a ring field.
+
+    n_beams = 0: the beam table inferred from this scan (``slam.sensor.estimate_beams``; the
+    pipeline estimates it once per sensor instead). n_beams > 0: that many beams evenly
+    spread over fov_deg (deg), nearest by elevation.
+    """
     xyz = np.asarray(xyz, dtype=np.float64)
+    if n_beams <= 0:
+        return estimate_beams([xyz]).ring_of(xyz)
     elev = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
     lo, hi = fov_deg
     step = (hi - lo) / max(n_beams - 1, 1)
@@ -137,14 +149,6 @@ def _group_rank(group: np.ndarray, key: np.ndarray) -> np.ndarray:
     return _ranks(group, key)[1]
 
 
-def _neighbours(idx: np.ndarray, run: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 2w) indices of the +-w neighbours of idx and a mask of those in the same run."""
-    offs = np.r_[-w:0, 1 : w + 1]
-    nb = np.clip(idx[:, None] + offs, 0, len(run) - 1)
-    same = (np.abs(nb - idx[:, None]) == np.abs(offs)) & (run[nb] == run[idx][:, None])
-    return nb, same
-
-
 def _greedy_nms(key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int) -> np.ndarray:
     """Indices A-LOAM's greedy selection would pick with no count limit.
 
@@ -181,50 +185,6 @@ def _greedy_nms(key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int) -> n
     return ci[state[:m] == 1]
 
 
-def _sector_top_picks(
-    key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int, sector: np.ndarray, n_top: int
-) -> np.ndarray:
-    """The n_top best (largest key) picks per sector of ``_greedy_nms(key, cand, run, w)``.
-
-    Same result without running the NMS over every candidate: a candidate's fate depends only
-    on higher-key candidates within +-w (recursively), so the NMS over a set closed under that
-    relation is exact on it. Start from each sector's best 8*n_top candidates (plus closure),
-    accept a sector once n_top picks fall in its exact prefix, widen the others and repeat.
-    """
-    ci = np.flatnonzero(cand)
-    if ci.size == 0 or n_top <= 0:
-        return ci[:0]
-    sec = sector[ci]
-    prio, rank, sec_id = _ranks(sec, key[ci])  # ties by index, as in the NMS
-    sec_size = np.bincount(sec_id)
-    limit = np.full(len(sec_size), 8 * n_top)
-    local = np.full(len(run), -1, dtype=np.int64)
-    local[ci] = np.arange(ci.size)
-    while True:
-        in_prefix = rank < limit[sec_id]
-        member = in_prefix.copy()
-        todo = np.flatnonzero(member)
-        while todo.size:  # closure: add higher-priority candidates within +-w
-            nb, same = _neighbours(ci[todo], run, w)
-            nl = np.where(same, local[nb], -1)
-            add = (nl >= 0) & (prio[np.maximum(nl, 0)] < prio[todo][:, None])
-            new = np.unique(nl[add])
-            new = new[~member[new]]
-            member[new] = True
-            todo = new
-        mask = np.zeros(len(run), dtype=bool)
-        mask[ci[member]] = True
-        picked = np.zeros(ci.size, dtype=bool)
-        picked[local[_greedy_nms(key, mask, run, w)]] = True
-        trusted = np.flatnonzero(picked & in_prefix)
-        count = np.bincount(sec_id[trusted], minlength=len(sec_size))
-        done = (count >= n_top) | (limit >= sec_size)
-        if done.all():
-            r = _group_rank(sec[trusted], key[ci[trusted]])
-            return np.sort(ci[trusted[r < n_top]])
-        limit[~done] *= 4
-
-
 def _spread(mask: np.ndarray, offsets: range, ring: np.ndarray) -> np.ndarray:
     """Mark i+o for every marked i and o in offsets, staying inside i's ring."""
     src = np.flatnonzero(mask)
@@ -243,16 +203,15 @@ def extract_features(
     cfg: FeatureConfig | None = None,
     *,
     azimuth_order: np.ndarray | None = None,
-    top_picks: bool = True,
+    top_picks: bool = False,
 ) -> Features:
     """LOAM edge and plane features of one sweep.
 
     ring: (N,) beam index per point (negative = skip); None -> ``ring_from_elevation``.
     azimuth_order: optional (N,) sort key used instead of the azimuth atan2(y, x) to order the
     points of a ring (e.g. per-point firing time); it is a key, not a permutation.
-    top_picks: also select sharp_idx/flat_idx (A-LOAM's few strongest per sector, for
-    frame-to-frame matching); scan-to-map front ends use only edge_idx/plane_idx and pass
-    False (the flat selection is a third of the cost).
+    top_picks: must be False (A-LOAM's frame-to-frame sharp/flat picks were removed: no
+    front end used them); accepted so that existing calls keep working.
     Curvature c_i = ||sum_{|j|<=w, j!=0} (p_{i+j} - p_i)||^2 (A-LOAM). With
     use_covariance_curvature, kappa (paper 000) is computed on the input cloud (expected to be
     SOR-filtered; neighbours searched in all of it, kappa only for the points a decision needs)
@@ -264,6 +223,8 @@ def extract_features(
     changes few features; SOR does most of the cleaning.
     """
     cfg = cfg or FeatureConfig()
+    if top_picks:
+        raise InputError("extract_features: the sharp/flat top picks were removed; pass False")
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
@@ -359,16 +320,8 @@ def extract_features(
     sel = sel[edge_ok[sel]]  # a rejected pseudo-edge is not replaced by its neighbours
     rank = _group_rank(sector[sel], cv[sel])
     less_sharp = sel[rank < cfg.max_less_sharp]
-    sharp = sel[rank < cfg.max_sharp] if top_picks else sel[:0]
     is_edge = np.zeros(n, dtype=bool)
     is_edge[less_sharp] = True
-    nb, same = _neighbours(less_sharp, run, w)
-    near_edge = is_edge.copy()
-    near_edge[nb[same]] = True
-
-    # flats: greedy NMS by increasing c among points not suppressed by edges
-    cand = plane_cand & ~picked & ~near_edge & plane_ok
-    flat = _sector_top_picks(-cv, cand, run, w, sector, cfg.max_flat) if top_picks else sel[:0]
     less_flat = np.flatnonzero(plane_cand & ~is_edge & plane_ok)
 
     def back(i: np.ndarray) -> np.ndarray:
@@ -378,7 +331,5 @@ def extract_features(
         edge_idx=back(less_sharp),
         plane_idx=back(less_flat),
         curvature=curvature_all,
-        sharp_idx=back(sharp),
-        flat_idx=back(flat),
         kappa=kappa_all,
     )
