@@ -140,3 +140,37 @@ def test_voxel_downsample_ties_go_to_lowest_index():
     xyz = np.array([[0.75, 0.75, 0.75], [0.25, 0.25, 0.25], [0.75, 0.75, 0.75], [0.25] * 3])
     assert np.array_equal(voxel_downsample(xyz, 1.0), [0])  # all 0.433 m from the centroid
     assert np.array_equal(voxel_downsample(np.zeros((0, 3)), 1.0), np.arange(0))
+
+
+def test_weighted_sor_eq7_hand_computed():
+    """Eqs. (4)-(9) on five points of a line, x = 0, 1, 2, 3, 10 m, k = 2, computed by hand.
+
+    Neighbour distances (ascending): p0 (1, 2), p1 (1, 1), p2 (1, 1), p3 (1, 2), p4 (7, 8).
+    (5) d_avg = (3 + 2 + 2 + 3 + 15) / 10 = 2.5 m.
+    (4)+(6) p0, p3: w = e^-0.4, e^-0.8 -> d = (e^-0.4 + 2 e^-0.8) / (e^-0.4 + e^-0.8) = 1.40131;
+    p1, p2: d = 1; p4: d = (7 e^-2.8 + 8 e^-3.2) / (e^-2.8 + e^-3.2) = 7.40131.
+    (8) mu = (2 * 1.40131 + 2 + 7.40131) / 5 = 2.44079.
+    (9) sigma = sqrt(sum (d - mu)^2 / 4) + delta = sqrt(30.9195 / 4) = 2.78027 (delta = 0).
+    rho = k / (4/3 pi r_k^3): r_k = 2, 1, 1, 2, 8 -> 0.059683, 0.477465, 0.477465, 0.059683,
+    0.000933; rho_avg = 0.215046; rho_avg / rho = 3.6031, 0.4504, 0.4504, 3.6031, 230.6, clamped
+    to 1 -> (7) Theta = mu + alpha sigma (1 + ratio) = 8.00132, 6.47326, 6.47326, 8.00132, 8.00132
+    (alpha = 1). The outlier p4 (7.40 m) stays: with five points it inflates sigma itself.
+    alpha = 0.5 -> Theta_4 = 2.44079 + 0.5 * 2.78027 * 2 = 5.22106 < 7.40: removed, p0-p3 kept.
+    """
+    xyz = np.c_[[0.0, 1.0, 2.0, 3.0, 10.0], np.zeros(5), np.zeros(5)]
+    dist = np.array([[1.0, 2.0], [1.0, 1.0], [1.0, 1.0], [1.0, 2.0], [7.0, 8.0]])
+    from slam.preprocess.sor import knn_distances, weighted_sor_terms
+
+    assert np.array_equal(knn_distances(xyz, 2), dist)
+    t = weighted_sor_terms(dist, alpha=1.0, delta=0.0)
+    np.testing.assert_allclose(t.d, [1.40131, 1.0, 1.0, 1.40131, 7.40131], atol=1e-5)
+    assert t.mu == pytest.approx(2.44079, abs=1e-5)
+    assert t.sigma == pytest.approx(2.78027, abs=1e-5)
+    np.testing.assert_allclose(t.rho, [0.059683, 0.477465, 0.477465, 0.059683, 0.000933], atol=1e-6)
+    np.testing.assert_allclose(t.theta, [8.00132, 6.47326, 6.47326, 8.00132, 8.00132], atol=1e-5)
+    assert weighted_sor(xyz, k=2, alpha=1.0, delta=0.0).all()
+    keep = weighted_sor(xyz, k=2, alpha=0.5, delta=0.0)
+    assert keep.tolist() == [True, True, True, True, False]
+    # the density term: unclamped (ratio 3.6 at p0) the sparse ends earn a wider threshold
+    wide = weighted_sor_terms(dist, alpha=1.0, delta=0.0, max_density_ratio=10.0)
+    assert wide.theta[0] == pytest.approx(2.44079 + 2.78027 * (1 + 3.60312), abs=1e-4)

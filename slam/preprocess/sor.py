@@ -135,16 +135,37 @@ def weighted_sor(
     if range_adaptive:
         rng = np.maximum(np.linalg.norm(xyz, axis=1), 0.1)
         dist = dist / rng[:, None]
+    terms = weighted_sor_terms(dist, alpha, delta, max_density_ratio)
+    return terms.d <= terms.theta
+
+
+@dataclass
+class SorTerms:
+    """The quantities of eqs. (4)-(9) per point (m unless noted): d (N,) weighted mean
+    neighbour distance (6), mu (8), sigma (9), rho (N,) local density (points/m^3), theta (N,)
+    threshold (7)."""
+
+    d: np.ndarray
+    mu: float
+    sigma: float
+    rho: np.ndarray
+    theta: np.ndarray
+
+
+def weighted_sor_terms(
+    dist: np.ndarray, alpha: float = 1.0, delta: float = 1e-5, max_density_ratio: float = 1.0
+) -> SorTerms:
+    """Eqs. (4)-(9) of paper 000 from the (N, k) ascending neighbour distances (m), N >= 2."""
     d_avg = max(float(dist.mean()), 1e-12)  # eq. (5)
     w = np.exp(-dist / d_avg)  # eq. (4)
     d = (w * dist).sum(axis=1) / w.sum(axis=1)  # eq. (6)
-    mu = d.mean()  # eq. (8)
-    sigma = d.std(ddof=1) + delta  # eq. (9)
+    mu = float(d.mean())  # eq. (8)
+    sigma = float(d.std(ddof=1)) + delta  # eq. (9)
     radius = np.maximum(dist[:, -1], 1e-9)
     rho = dist.shape[1] / (4.0 / 3.0 * np.pi * radius**3)
     ratio = np.minimum(rho.mean() / rho, max_density_ratio)
     theta = mu + alpha * sigma * (1.0 + ratio)  # eq. (7)
-    return d <= theta
+    return SorTerms(d, mu, sigma, rho, theta)
 
 
 def apply_sor(xyz: np.ndarray, cfg: SorConfig, nbh: Neighbourhoods | None = None) -> np.ndarray:
