@@ -3,7 +3,6 @@ mixed pixels, porous vegetation, vehicle motion on uneven ground) and of the par
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -16,7 +15,7 @@ from slam.sim import LidarModel, Scene, ensure_sequence, iter_scans, make_scene
 from slam.sim import geometry as g
 from slam.sim.cache import sequence_key
 from slam.sim.lidar import simulate_scan_truth
-from slam.sim.simulate import effective_model, full_frames
+from slam.sim.simulate import effective_model, full_frames, model_dict
 from slam.sim.trajectory import closed_curve_trajectory, rounded_rectangle
 
 IDEAL = dict(range_sigma=0.0, spurious_fraction=0.0)
@@ -333,7 +332,8 @@ def test_park_scene_route_and_revisits():
 
 def test_park_short_sequence(tmp_path):
     res = ensure_sequence("park", frames=5, cache_dir=tmp_path)
-    assert res.meta["model"] == json.loads(json.dumps(dataclasses.asdict(LidarModel.realistic())))
+    assert res.meta["model"] == json.loads(json.dumps(model_dict(LidarModel.realistic())))
+    assert "elevations_deg" not in res.meta["model"]  # sim.json as before the sensor table
     assert res.meta["loop_max_radius"] == make_scene("park").loop_max_radius
     scans = list(open_source(res.bag))
     assert len(scans) == 5

@@ -10,16 +10,24 @@ writers are safe.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from slam.sim.lidar import LidarModel
-from slam.sim.simulate import META_NAME, SimResult, effective_model, load_result, simulate
+from slam.sim.sensors import DEFAULT_SENSOR, get_sensor
+from slam.sim.simulate import (
+    META_NAME,
+    SimResult,
+    effective_model,
+    load_result,
+    model_dict,
+    simulate,
+)
 
 SIM_VERSION = 1  # bump when the simulated data change meaning
 
@@ -72,9 +80,12 @@ def sequence_key(
     seed: int,
     pedestrians: bool,
     model: LidarModel | None = None,
+    sensor: str = DEFAULT_SENSOR,
 ) -> str:
     """Folder name of a sequence in the cache; the key holds the effective sensor model
-    (the scene's own when ``model`` is None)."""
+    (the scene's version of ``sensor`` when ``model`` is None). Sensors other than the
+    default VLP-16 are named in the folder and the key (their driver layout differs)."""
+    get_sensor(sensor)
     spec = {
         "version": SIM_VERSION,
         "source": _source_digest(),
@@ -83,10 +94,14 @@ def sequence_key(
         "fmt": fmt,
         "seed": seed,
         "pedestrians": pedestrians,
-        "model": dataclasses.asdict(effective_model(scene, model)),
+        "model": model_dict(effective_model(scene, model, sensor)),
     }
+    name = scene
+    if sensor != DEFAULT_SENSOR:
+        spec["sensor"] = sensor
+        name = f"{scene}-{sensor}"
     digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
-    return f"{scene}-{'full' if frames is None else frames}-{seed}-{digest}"
+    return f"{name}-{'full' if frames is None else frames}-{seed}-{digest}"
 
 
 def ensure_sequence(
@@ -98,11 +113,22 @@ def ensure_sequence(
     pedestrians: bool = True,
     cache_dir: Path | None = None,
     model: LidarModel | None = None,
+    sensor: str = DEFAULT_SENSOR,
+    progress: Callable[[int, int], None] | None = None,
 ) -> SimResult:
-    """The cached sequence for these arguments, simulating it first when missing."""
+    """The cached sequence for these arguments, simulating it first when missing.
+
+    sensor: "vlp16" (default), "hdl32", "hdl64" or "os128" (:mod:`slam.sim.sensors`);
+    progress(done, total) as in :func:`simulate` (only called when simulating)."""
     root = Path(cache_dir) if cache_dir is not None else cache_root()
     key = sequence_key(
-        scene, frames=frames, fmt=fmt, seed=seed, pedestrians=pedestrians, model=model
+        scene,
+        frames=frames,
+        fmt=fmt,
+        seed=seed,
+        pedestrians=pedestrians,
+        model=model,
+        sensor=sensor,
     )
     final = root / key
     if (final / META_NAME).is_file():
@@ -113,7 +139,15 @@ def ensure_sequence(
     try:
         os.chmod(tmp, 0o755)
         simulate(
-            scene, tmp, frames=frames, fmt=fmt, seed=seed, pedestrians=pedestrians, model=model
+            scene,
+            tmp,
+            frames=frames,
+            fmt=fmt,
+            seed=seed,
+            pedestrians=pedestrians,
+            model=model,
+            sensor=sensor,
+            progress=progress,
         )
         (tmp / _STAMP_NAME).write_text(json.dumps({"digest": _code_digest()}))
         if final.exists() and not (final / META_NAME).is_file():

@@ -1,4 +1,8 @@
-"""A ray-cast spinning 16-beam LiDAR (VLP-16-like) with per-column motion.
+"""A ray-cast spinning multi-beam LiDAR (VLP-16-like by default) with per-column motion.
+
+The beam elevations are uniform over ``fov_deg`` or an explicit per-beam table
+(``elevations_deg``, e.g. the two non-uniform blocks of an HDL-64E); the named sensor
+models (VLP-16, HDL-32E, HDL-64E, OS1-128) live in :mod:`slam.sim.sensors`.
 
 Each column (one azimuth, all beams) fires at its own time within the sweep and is cast
 from the sensor pose at that time, so motion distorts the scan exactly like a real
@@ -50,6 +54,10 @@ class LidarModel:
     straddles the edge and the echoes of foreground and background merge into one at a
     random range in between (a "veil" point floating in air behind the edge). Larger gaps
     give two separable echoes (the strongest wins), smaller ones are the same surface.
+
+    elevations_deg: explicit per-beam elevation table (deg, ascending: ring 0 at the
+    bottom, ``beams`` entries) for sensors with non-uniform beam spacing; None = uniform
+    over ``fov_deg``.
     """
 
     beams: int = 16
@@ -68,6 +76,7 @@ class LidarModel:
     mixed_pixel_prob: float = 0.0
     mixed_pixel_min_gap: float = 0.3
     mixed_pixel_max_gap: float = 5.0
+    elevations_deg: tuple[float, ...] | None = None
 
     @classmethod
     def realistic(cls, calibration_seed: int = 0, **overrides) -> LidarModel:
@@ -118,6 +127,13 @@ class LidarModel:
             raise InputError("LidarModel needs 0 <= mixed_pixel_prob <= 1")
         if not 0.0 <= self.mixed_pixel_min_gap < self.mixed_pixel_max_gap:
             raise InputError("LidarModel needs 0 <= mixed_pixel_min_gap < mixed_pixel_max_gap")
+        if self.elevations_deg is not None:
+            el = np.asarray(self.elevations_deg, dtype=float)
+            if el.shape != (self.beams,) or np.any(np.diff(el) <= 0):
+                raise InputError(
+                    f"LidarModel.elevations_deg needs {self.beams} ascending angles (deg), "
+                    f"got {len(el)}"
+                )
 
     @property
     def has_calibration_error(self) -> bool:
@@ -150,6 +166,8 @@ class LidarModel:
 
     def elevations(self) -> np.ndarray:
         """(beams,) elevation angles (rad), ring 0 at the bottom."""
+        if self.elevations_deg is not None:
+            return np.deg2rad(np.asarray(self.elevations_deg, dtype=np.float64))
         return np.deg2rad(np.linspace(self.fov_deg[0], self.fov_deg[1], self.beams))
 
     def azimuths(self) -> np.ndarray:

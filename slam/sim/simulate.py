@@ -21,6 +21,7 @@ from slam.io.trajectory import read_tum, write_tum
 from slam.sim.lidar import LidarModel, ScanTruth, simulate_scan_truth
 from slam.sim.scene import Scene
 from slam.sim.scenes import SCENES, scene_sensor
+from slam.sim.sensors import DEFAULT_SENSOR, SensorSpec, driver_order, get_sensor
 from slam.types import Scan
 
 STAMP0 = 1_700_000_000.0  # header stamp of the first sweep (s since the epoch)
@@ -43,9 +44,23 @@ class SimResult:
     topic: str = TOPIC
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
 
+    @property
+    def sensor(self) -> str:
+        """Name of the simulated sensor (:data:`slam.sim.sensors.SENSORS`)."""
+        return str(self.meta.get("sensor", DEFAULT_SENSOR))
+
     def read_ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
         """stamps (N,) s and poses (N,4,4) T_world_sensor."""
         return read_tum(self.ground_truth)
+
+
+def model_dict(model: LidarModel) -> dict[str, Any]:
+    """The model's fields for sim.json and cache keys; an unset elevation table is left out,
+    so that the older sequences keep their keys' contents and their sim.json."""
+    values = dataclasses.asdict(model)
+    if values.get("elevations_deg") is None:
+        values.pop("elevations_deg", None)
+    return values
 
 
 def make_scene(scene: str, *, seed: int = 0, pedestrians: bool = True) -> Scene:
@@ -55,14 +70,38 @@ def make_scene(scene: str, *, seed: int = 0, pedestrians: bool = True) -> Scene:
     return SCENES[scene](seed, pedestrians=pedestrians)
 
 
-def effective_model(scene: Scene | str, model: LidarModel | None = None) -> LidarModel:
+def effective_model(
+    scene: Scene | str, model: LidarModel | None = None, sensor: str = DEFAULT_SENSOR
+) -> LidarModel:
     """The LiDAR model a scene (object or name) is simulated with: ``model`` if given, else
-    the scene's own sensor (e.g. the realistic VLP-16 of ``park``), else the default."""
+    the named ``sensor`` (:mod:`slam.sim.sensors`) as the scene uses it: for the default
+    VLP-16 the scene's own model (e.g. the realistic one of ``park``), for another sensor
+    its realistic variant when the scene's own model is realistic, else its ideal one."""
     if model is not None:
         return model
     if isinstance(scene, str):
-        return scene_sensor(scene)
-    return getattr(scene, "sensor", None) or LidarModel()
+        return scene_sensor(scene, sensor)
+    own = getattr(scene, "sensor", None)
+    if sensor == DEFAULT_SENSOR:
+        return own or LidarModel()
+    return get_sensor(sensor).model(realistic=own is not None and own.has_calibration_error)
+
+
+def _driver_convention(
+    scan: Scan, truth: ScanTruth, beams: int, spec: SensorSpec
+) -> tuple[Scan, ScanTruth]:
+    """The sweep in the point order and ring numbering its driver publishes."""
+    if not (spec.row_major or spec.ring_top_first):
+        return scan, truth
+    order, ring = driver_order(scan.ring.astype(np.int64), truth.column, beams, spec)
+    out = scan.select(order)
+    out.ring = ring
+    per_point = {
+        f.name: getattr(truth, f.name)[order]
+        for f in dataclasses.fields(truth)
+        if f.name != "T_world_sensor_columns" and getattr(truth, f.name) is not None
+    }
+    return out, dataclasses.replace(truth, **per_point)
 
 
 def full_frames(scene: Scene, model: LidarModel) -> int:
@@ -82,11 +121,14 @@ def iter_scans(
     seed: int = 0,
     model: LidarModel | None = None,
     with_truth: bool = False,
+    sensor: str = DEFAULT_SENSOR,
 ) -> Iterator[Scan] | Iterator[tuple[Scan, ScanTruth]]:
     """Yield the ``frames`` scans of a drive (deterministic for a seed); with ``with_truth``
-    yield (Scan, ScanTruth) pairs. model: default the scene's sensor (see
-    :func:`effective_model`)."""
-    model = effective_model(scene, model)
+    yield (Scan, ScanTruth) pairs. sensor: a name of :data:`slam.sim.sensors.SENSORS`
+    (its driver's point order and ring numbering); model: default the scene's version of
+    that sensor (see :func:`effective_model`)."""
+    spec = get_sensor(sensor)
+    model = effective_model(scene, model, sensor)
     rng = np.random.default_rng([seed, 7])
 
     def pose_at(times: np.ndarray) -> np.ndarray:
@@ -96,6 +138,7 @@ def iter_scans(
         scan, truth = simulate_scan_truth(
             scene, pose_at, float(stamp), model, rng, time_offset=STAMP0
         )
+        scan, truth = _driver_convention(scan, truth, model.beams, spec)
         scan.index = i
         yield (scan, truth) if with_truth else scan
 
@@ -114,18 +157,23 @@ def simulate(
     pedestrians: bool = True,
     model: LidarModel | None = None,
     progress: Callable[[int, int], None] | None = None,
+    sensor: str = DEFAULT_SENSOR,
 ) -> SimResult:
     """Simulate ``scene`` into the folder ``out``; ``frames`` truncates the drive.
 
-    model: the LiDAR model, default the scene's own (:func:`effective_model`).
-    progress(done, total) is called after each frame. Overwrites an earlier bag there.
+    sensor: a name of :data:`slam.sim.sensors.SENSORS` ("vlp16", "hdl32", "hdl64",
+    "os128"): its optics and its driver's layout, topic, frame and point order.
+    model: the LiDAR model, default the scene's version of ``sensor``
+    (:func:`effective_model`). progress(done, total) is called after each frame.
+    Overwrites an earlier bag there.
     """
     from slam.io.bag_writer import FORMATS, write_pointcloud_bag
 
     if fmt not in FORMATS:
         raise InputError(f"unknown bag format {fmt!r}; choose one of {list(FORMATS)}")
+    spec = get_sensor(sensor)
     world = make_scene(scene, seed=seed, pedestrians=pedestrians)
-    model = effective_model(world, model)
+    model = effective_model(world, model, sensor)
     total = full_frames(world, model)
     if frames is None:
         frames = total
@@ -136,13 +184,19 @@ def simulate(
     bag = bag_path(out, scene, fmt)
 
     def scans() -> Iterator[Scan]:
-        for i, scan in enumerate(iter_scans(world, frames, seed=seed, model=model)):
+        for i, scan in enumerate(iter_scans(world, frames, seed=seed, model=model, sensor=sensor)):
             yield scan
             if progress is not None:
                 progress(i + 1, frames)
 
     write_pointcloud_bag(
-        bag, scans(), topic=TOPIC, frame_id=FRAME_ID, fmt=fmt, layout="velodyne", overwrite=True
+        bag,
+        scans(),
+        topic=spec.topic,
+        frame_id=spec.frame_id,
+        fmt=fmt,
+        layout=spec.layout,
+        overwrite=True,
     )
     stamps = frame_stamps(frames, model)
     gt = out / GT_NAME
@@ -155,8 +209,8 @@ def simulate(
         "seed": seed,
         "fmt": fmt,
         "pedestrians": pedestrians,
-        "topic": TOPIC,
-        "frame_id": FRAME_ID,
+        "topic": spec.topic,
+        "frame_id": spec.frame_id,
         "stamp0": STAMP0,
         "bag": bag.name,
         "ground_truth": GT_NAME,
@@ -164,10 +218,12 @@ def simulate(
         "revisit_radius": world.revisit_radius,
         "lap_length_m": world.trajectory.loop_length,
         "sensor_height_m": world.trajectory.height,
-        "model": dataclasses.asdict(model),
+        "model": model_dict(model),
     }
+    if sensor != DEFAULT_SENSOR:  # older sequences' sim.json stay as they were
+        meta.update(sensor=sensor, layout=spec.layout, sensor_description=spec.description)
     (out / META_NAME).write_text(json.dumps(meta, indent=2))
-    return SimResult(bag, gt, frames, scene, fmt, seed, TOPIC, meta)
+    return SimResult(bag, gt, frames, scene, fmt, seed, spec.topic, meta)
 
 
 def load_result(folder: Path) -> SimResult:

@@ -1,4 +1,5 @@
-"""Smooth ground-robot trajectories along closed planar curves.
+"""Smooth ground-robot trajectories along closed planar curves, and car drives along open
+routes (:func:`route_trajectory`: speed limits, stops, acceleration limits, body sway).
 
 The robot follows a closed curve for ``loops`` laps (e.g. 1.1 so that it revisits its
 start). Speed is continuous: it ramps up from a crawl and slows in tight turns; yaw
@@ -100,6 +101,10 @@ class Trajectory:
     z_tab: np.ndarray | None = None  # (K,) ground height (m); None: flat ground at z = 0
     pitch_tab: np.ndarray | None = None  # (K,) pitch (rad) from the terrain slope
     roll_tab: np.ndarray | None = None  # (K,) roll (rad) from the terrain slope
+    # Car-like drives (see :func:`route_trajectory`), per table entry, interpolated in time
+    # (the tables hold two entries at the same place for a stop):
+    wobble_scale_tab: np.ndarray | None = None  # (K,) 0..1 factor of wobble and vibration
+    attitude_tab: np.ndarray | None = None  # (K, 2) extra roll, pitch (rad): body sway
 
     @property
     def duration(self) -> float:
@@ -125,6 +130,10 @@ class Trajectory:
             + self.wobble_phase[:, :, None]
         )
         rp = np.sum(self.wobble_amp[:, :, None] * np.sin(arg), axis=1)  # (2, M)
+        if self.wobble_scale_tab is not None:
+            rp = rp * np.interp(t, self.t_tab, self.wobble_scale_tab)[None, :]
+        if self.attitude_tab is not None:
+            rp = rp + np.stack([np.interp(t, self.t_tab, a) for a in self.attitude_tab.T])
         z = self.height
         if self.z_tab is not None:
             z = np.interp(s, self.s_tab, self.z_tab) + self.height
@@ -246,3 +255,176 @@ def _terrain_attitude(
     pitch = -np.arctan(grade)
     roll = np.arctan(bank * np.cos(pitch))
     return (np.interp(s, s[sub], z), np.interp(s, s[sub], pitch), np.interp(s, s[sub], roll))
+
+
+# ---------------------------------------------------------------------------- car routes
+
+
+def _turn(angle: float, length: float, ds: float) -> np.ndarray:
+    """xy (K,2) of a turn by ``angle`` (rad, + = left) starting at the origin heading +x,
+    with curvature ``angle / length * (1 - cos(2 pi u / length))`` (zero at both ends)."""
+    u = np.arange(0.0, length + ds / 2, ds)
+    heading = angle * (u / length - np.sin(2 * np.pi * u / length) / (2 * np.pi))
+    c, s_ = np.cos(heading), np.sin(heading)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (c[1:] + c[:-1]) * ds)])
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (s_[1:] + s_[:-1]) * ds)])
+    return np.column_stack([x, y])
+
+
+def lane_route(
+    nodes: np.ndarray,
+    *,
+    lane_offset: float = 0.0,
+    left_turn_length: float = 26.0,
+    right_turn_length: float = 18.0,
+    ds: float = 0.05,
+) -> np.ndarray:
+    """Open path (K,2) through street-centre ``nodes`` (N,2) (m), driven ``lane_offset``
+    m right of the centre line, every corner rounded by a curvature-continuous turn of
+    ``left_turn_length`` / ``right_turn_length`` m of arc (minimum radius length / (2 *
+    |angle|); for 90 deg: 8.3 / 5.7 m). Nodes where the route goes straight on are kept."""
+    nodes = np.asarray(nodes, dtype=float)
+    d = np.diff(nodes, axis=0)
+    e = d / np.hypot(d[:, 0], d[:, 1])[:, None]
+    n = np.column_stack([e[:, 1], -e[:, 0]])  # right of the direction of travel
+    pieces = []
+    pos = nodes[0] + lane_offset * n[0]
+    for i in range(1, len(nodes) - 1):
+        ein, eout = e[i - 1], e[i]
+        angle = float(np.arctan2(ein[0] * eout[1] - ein[1] * eout[0], ein @ eout))
+        # Corner of the two offset lane lines: p + a ein = q + b eout.
+        p = nodes[i] + lane_offset * n[i - 1]
+        q = nodes[i] + lane_offset * n[i]
+        if abs(angle) < 1e-6:
+            continue
+        a, _ = np.linalg.solve(np.column_stack([ein, -eout]), q - p)
+        corner = p + a * ein
+        turn = _turn(angle, left_turn_length if angle > 0 else right_turn_length, ds)
+        X, Y = turn[-1]
+        x0 = X - Y * np.cos(angle) / np.sin(angle)  # turn start before the corner (m)
+        start = corner - x0 * ein
+        rot = np.column_stack([ein, [-ein[1], ein[0]]])
+        straight = float((start - pos) @ ein)
+        if straight < 0:
+            raise InputError(f"lane_route: leg {i} too short for its turns")
+        k = max(int(straight / ds), 1)
+        pieces.append(pos + np.outer(np.arange(k) * (straight / k), ein))
+        pieces.append(start + turn[:-1] @ rot.T)
+        pos = start + turn[-1] @ rot.T
+    end = nodes[-1] + lane_offset * n[-1]
+    rest = float((end - pos) @ e[-1])
+    k = max(int(rest / ds), 1)
+    pieces.append(pos + np.outer(np.arange(k + 1) * (rest / k), e[-1]))
+    return np.vstack(pieces)
+
+
+def speed_profile(
+    s: np.ndarray,
+    v_limit: np.ndarray,
+    *,
+    accel: float,
+    decel: float,
+) -> np.ndarray:
+    """Fastest speed (m/s) at arc lengths ``s`` (K,) under ``v_limit`` (K,) (0 where the
+    car must stop), accelerating at most ``accel`` and braking at most ``decel`` m/s^2;
+    v^2 grows at most linearly in distance (v dv/ds = a), forward and backward passes."""
+    v = np.array(v_limit, dtype=float)
+    ds = np.diff(s)
+    for i in range(len(v) - 1):  # numba-free: K ~ 1e5, once per scene
+        v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2 * accel * ds[i]))
+    for i in range(len(v) - 2, -1, -1):
+        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * decel * ds[i]))
+    return v
+
+
+def route_trajectory(
+    xy: np.ndarray,
+    *,
+    speed_limit: np.ndarray,
+    stops: list[tuple[float, float]],
+    height: float,
+    rng: np.random.Generator,
+    lateral_accel: float = 2.5,
+    accel: float = 1.5,
+    decel: float = 2.5,
+    wobble_deg: float = 0.3,
+    vibration_deg: float = 0.1,
+    pitch_per_accel_deg: float = 0.25,
+    roll_per_accel_deg: float = 0.35,
+    sway_speed: float = 4.0,
+) -> Trajectory:
+    """A car's drive along the open path ``xy`` (K,2) (m, dense), from standstill to
+    standstill.
+
+    speed_limit (K,) m/s along the path; in curves v <= sqrt(lateral_accel / |curvature|);
+    accelerations bounded by ``accel`` / ``decel`` (m/s^2). stops: (distance along the
+    path m, dwell s): the car brakes to 0 there and waits (a stop at 0 waits at the start).
+    The body pitches forward by ``pitch_per_accel_deg`` per m/s^2 of braking (backward
+    when accelerating) and rolls out of the turn by ``roll_per_accel_deg`` per m/s^2 of
+    lateral acceleration; suspension wobble (``wobble_deg``, 0.15-0.9 Hz) and road
+    vibration (``vibration_deg``, 2-9 Hz) fade out below ``sway_speed`` m/s (0 at rest).
+    """
+    xy = np.asarray(xy, dtype=float)
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    keep = np.concatenate([[True], seg > 1e-9])
+    xy = xy[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    v_lim = np.asarray(speed_limit, dtype=float)[keep]
+    d = np.gradient(xy, s, axis=0)
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    kappa = np.gradient(heading, s)
+    w = max(int(1.0 / max(s[1] - s[0], 1e-6)), 1)
+    kappa_s = np.convolve(kappa, np.ones(w) / w, "same")  # ~1 m smoothing
+    with np.errstate(divide="ignore"):
+        v_lim = np.minimum(v_lim, np.sqrt(lateral_accel / np.abs(kappa_s)))
+    v_lim[0] = v_lim[-1] = 0.0
+    stop_idx = sorted({int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1)) for sd, _ in stops})
+    v_lim[stop_idx] = 0.0
+    v = speed_profile(s, v_lim, accel=accel, decel=decel)
+    dt = 2.0 * np.diff(s) / np.maximum(v[1:] + v[:-1], 1e-9)
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    a_long = np.gradient(0.5 * v**2, s)
+    a_lat = v**2 * kappa_s
+    # Stops: a second table entry at the same place, dwell seconds later (and every
+    # later entry shifted by the dwell).
+    dwell: dict[int, float] = {}
+    for sd, dw in stops:
+        i = int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1))
+        dwell[i] = dwell.get(i, 0.0) + float(dw)
+    rep = np.ones(len(s), dtype=int)
+    rep[[i for i, dw in dwell.items() if dw > 0]] = 2
+    idx = np.repeat(np.arange(len(s)), rep)
+    second = np.concatenate([[False], idx[1:] == idx[:-1]])
+    add = np.zeros(len(idx))
+    add[second] = [dwell[i] for i in idx[second]]
+    t_rep = t[idx] + np.cumsum(add)
+    s_rep, v_rep = s[idx], v[idx]
+    a_long_r, a_lat_r = a_long[idx], a_lat[idx]
+    at_rest = v_rep == 0
+    a_long_r[at_rest] = a_lat_r[at_rest] = 0.0
+    attitude = np.column_stack(
+        [
+            np.deg2rad(roll_per_accel_deg) * a_lat_r,  # left turn: left side up
+            np.deg2rad(pitch_per_accel_deg) * a_long_r * -1.0,  # braking: nose down
+        ]
+    )
+    amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
+    freq = rng.uniform(0.15, 0.9, size=(2, 2))
+    phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
+    if vibration_deg > 0:
+        amp = np.hstack([amp, np.deg2rad(vibration_deg) * np.tile([0.5, 0.3, 0.2], (2, 1))])
+        freq = np.hstack([freq, rng.uniform(2.0, 9.0, size=(2, 3))])
+        phase = np.hstack([phase, rng.uniform(0, 2 * np.pi, size=(2, 3))])
+    return Trajectory(
+        s_rep,
+        t_rep,
+        xy[idx],
+        heading[idx],
+        height,
+        amp,
+        freq,
+        phase,
+        float(s[-1]),
+        wobble_scale_tab=np.clip(v_rep / sway_speed, 0.0, 1.0),
+        attitude_tab=attitude,
+    )
