@@ -160,8 +160,8 @@ def pcd_bytes(
         f"DATA {data}\n"
     ).encode()
     if data == "ascii":
-        cols = [rec[n].reshape(rec.size, -1) for n in names]
-        rows = np.hstack([c.astype(np.float64) for c in cols]) if rec.size else np.zeros((0, 1))
+        cols = [rec[n].reshape(rec.size, -1).astype(np.float64) for n in names if rec.size]
+        rows = np.hstack(cols) if rec.size else np.zeros((0, 1))
         body = "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in rows).encode()
     else:
         packed = np.dtype([(n, f.newbyteorder("<")) for n, f in zip(names, fmts, strict=True)])

@@ -70,7 +70,7 @@ def _open3d_columns(path: Path) -> dict[str, np.ndarray]:
     return cols
 
 
-def cloud_columns(path: str | Path) -> dict[str, np.ndarray]:
+def cloud_columns(path: str | Path, notes: Notes | None = None) -> dict[str, np.ndarray]:
     """One (N,) column per field of a .pcd/.ply file (first element of multi-count fields).
 
     PCD ascii/binary: numpy (:mod:`slam.io.pcd`); PLY and binary_compressed PCD: open3d.
@@ -81,7 +81,7 @@ def cloud_columns(path: str | Path) -> dict[str, np.ndarray]:
         return _open3d_columns(path)
     buf = path.read_bytes()
     try:
-        return read_pcd_columns(buf, str(path))[1]
+        return read_pcd_columns(buf, str(path), notes)[1]
     except NotImplementedError:
         return _open3d_columns(path)
 
@@ -98,7 +98,7 @@ def read_cloud(
     """
     path = Path(path)
     try:
-        cols = cloud_columns(path)
+        cols = cloud_columns(path, notes)
     except OSError as exc:
         raise InputError(f"cannot open {path}: {exc}") from exc
     missing = [c for c in "xyz" if c not in cols]

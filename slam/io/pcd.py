@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError
+from slam.io.points import Notes
+from slam.io.skips import BAD_DATATYPE, CORRUPT_FILE, EMPTY_FILE, FrameError
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS")
 # (TYPE, SIZE) -> numpy code; PCD data is little endian
@@ -25,10 +26,11 @@ _MAX_HEADER = 65536
 
 @dataclass(frozen=True)
 class PcdHeader:
-    """The parsed header: field names, numpy codes (None: unknown type, read as bytes),
-    sizes (bytes), counts, point count, DATA kind and the byte offset of the data."""
+    """The parsed header: field names, TYPE letters, numpy codes (None: unknown type, read
+    as bytes), sizes (bytes), counts, point count, DATA kind and the data's byte offset."""
 
     names: tuple[str, ...]
+    types: tuple[str, ...]
     codes: tuple[str | None, ...]
     sizes: tuple[int, ...]
     counts: tuple[int, ...]
@@ -91,17 +93,34 @@ def parse_header(buf: bytes, where: str = "PCD") -> PcdHeader:
         raise FrameError(CORRUPT_FILE, f"{where}: PCD POINTS without a value")
     codes = tuple(_TYPES.get((t, s)) for t, s in zip(types, sizes, strict=True))
     return PcdHeader(
-        names, codes, tuple(sizes), tuple(counts), points[0], data_kind, min(pos, len(buf))
+        names,
+        tuple(types),
+        codes,
+        tuple(sizes),
+        tuple(counts),
+        points[0],
+        data_kind,
+        min(pos, len(buf)),
     )
 
 
-def read_pcd_columns(buf: bytes, where: str = "PCD") -> tuple[PcdHeader, dict[str, np.ndarray]]:
+def read_pcd_columns(
+    buf: bytes, where: str = "PCD", notes: Notes | None = None
+) -> tuple[PcdHeader, dict[str, np.ndarray]]:
     """Header and one (POINTS,) column per readable field (first element of COUNT > 1;
-    fields of unknown TYPE/SIZE are skipped). ``data`` "binary_compressed" raises
-    NotImplementedError (read it with open3d); other problems raise FrameError."""
+    other fields of unknown TYPE/SIZE are left out, noted in ``notes``; on x/y/z they are
+    a FrameError). ``data`` "binary_compressed" raises NotImplementedError (read it with
+    open3d); other problems raise FrameError."""
     h = parse_header(buf, where)
     if len(set(h.names)) != len(h.names):
         raise FrameError(CORRUPT_FILE, f"{where}: PCD FIELDS repeat a name: {list(h.names)}")
+    for name, t, code, size in zip(h.names, h.types, h.codes, h.sizes, strict=True):
+        if code is None:
+            problem = f"PCD field {name!r} has unknown TYPE {t} / SIZE {size}"
+            if name in ("x", "y", "z"):
+                raise FrameError(BAD_DATATYPE, f"{where}: {problem}")
+            if notes is not None:
+                notes.add(f"{problem}: field dropped")
     if h.data == "binary_compressed":
         raise NotImplementedError("binary_compressed")
     body = memoryview(buf)[h.data_offset :]
@@ -154,6 +173,8 @@ def read_pcd_columns(buf: bytes, where: str = "PCD") -> tuple[PcdHeader, dict[st
 def _as_int(col: np.ndarray, code: str) -> np.ndarray:
     """An ascii integer column in its declared type when it fits, else as float64."""
     info = np.iinfo(code)
-    if np.isfinite(col).all() and col.min() >= info.min and col.max() <= info.max:
+    if col.size == 0 or (
+        np.isfinite(col).all() and col.min() >= info.min and col.max() <= info.max
+    ):
         return col.astype(code)
     return col

@@ -174,7 +174,8 @@ def assemble_scan(
 
     ``ring``/``time`` are (field name, values). A ring that is not int16 and times that are
     not finite on the kept points are dropped from the scan, with a line in ``notes``;
-    per-point time is converted by :func:`guess_time_unit` and :func:`normalise_time`.
+    per-point time is converted by :func:`guess_time_unit` (unit from all points' finite
+    times) and :func:`normalise_time` (on the kept points).
     """
     keep = finite_mask(x, y, z)
     all_ok = bool(keep.all())
@@ -185,7 +186,8 @@ def assemble_scan(
     def kept(col: np.ndarray) -> np.ndarray:
         return col if all_ok else col[keep]
 
-    out_i = None if intensity is None else kept(intensity).astype(np.float32)
+    with np.errstate(over="ignore"):  # float64 intensities beyond float32 become inf
+        out_i = None if intensity is None else kept(intensity).astype(np.float32)
     out_r = None
     if ring is not None:
         out_r = ring_int16(kept(ring[1]))
@@ -197,11 +199,14 @@ def assemble_scan(
     out_t = None
     if time is not None:
         name, raw = time
-        raw = kept(raw)
         integer = raw.dtype.kind in "iub"
-        values = raw.astype(np.float64)
+        every = raw.astype(np.float64)
+        values = kept(every)
         if integer or np.isfinite(values).all():
-            spec = guess_time_unit(name, values, integer=integer)
+            # the unit from every point's time (no-return points too): the span of the
+            # whole sweep, even when few points kept a finite coordinate
+            known = every if integer else every[finite_mask(every)]
+            spec = guess_time_unit(name, known, integer=integer)
             out_t, stamp = normalise_time(values, spec, stamp)
         elif notes is not None:
             notes.add(f"field {name!r} has non-finite per-point times: time dropped")
