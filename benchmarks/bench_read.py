@@ -1,7 +1,10 @@
-"""Reading speed of bags: frames/s of BagSource (read + deserialise + decode) relative to
-raw rosbags AnyReader iteration without deserialisation (the baseline), same run, same file.
+"""Reading speed: frames/s of BagSource (read + deserialise + decode) relative to raw
+rosbags AnyReader iteration without deserialisation (the baseline), same run, same file;
+with ``--pcd DIR``: FolderSource (numpy PCD reader) relative to open3d.t.io.read_point_cloud
+on the same files (e.g. the real KITTI-raw PCDs of ../shared/data/kitti_raw_drive, extracted).
 
     .venv/bin/python benchmarks/bench_read.py [--scans 60] [--points 28800] [--fmt ros1]
+    .venv/bin/python benchmarks/bench_read.py --pcd /tmp/data_1
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from slam.io.bag_writer import write_pointcloud_bag
 from slam.io.bags import BagSource, _bag_dir
+from slam.io.folders import FolderSource
 from slam.types import Scan
 
 
@@ -43,6 +47,29 @@ def best_of(fn, repeats: int) -> float:
     return min(times)
 
 
+def bench_pcd(folder: Path, repeats: int) -> None:
+    """FolderSource vs open3d.t.io on the same PCD files (same run)."""
+    import open3d as o3d
+
+    source = FolderSource(folder)
+    files = source.files
+
+    def o3d_read() -> None:
+        for f in files:
+            pc = o3d.t.io.read_point_cloud(str(f))
+            pc.point.positions.numpy().astype(np.float64)
+
+    def ours() -> None:
+        assert sum(isinstance(s, Scan) for s in source) == len(files)
+
+    t_o3d, t_ours = best_of(o3d_read, repeats), best_of(ours, repeats)
+    pts = sum(len(s) for s in source if isinstance(s, Scan)) / len(files)
+    print(f"PCD folder {folder}: {len(files)} files, {pts:.0f} points each")
+    print(f"  open3d.t.io.read_point_cloud (baseline): {len(files) / t_o3d:8.1f} frames/s")
+    print(f"  FolderSource (numpy PCD reader):         {len(files) / t_ours:8.1f} frames/s")
+    print(f"  ratio FolderSource / baseline:           {t_o3d / t_ours:8.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=60)
@@ -50,7 +77,11 @@ def main() -> None:
     ap.add_argument("--fmt", default="ros1", choices=["ros1", "ros2", "mcap"])
     ap.add_argument("--layout", default="velodyne")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--pcd", type=Path, help="a folder of .pcd files: compare with open3d")
     args = ap.parse_args()
+    if args.pcd is not None:
+        bench_pcd(args.pcd, args.repeats)
+        return
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / ("b.bag" if args.fmt == "ros1" else "b")
@@ -74,9 +105,7 @@ def main() -> None:
         source = BagSource(path)
 
         def ours() -> None:
-            n = 0
-            for scan in source:
-                n += len(scan) > 0
+            n = sum(isinstance(scan, Scan) for scan in source)
             assert n == args.scans
 
         t_raw, t_deser, t_ours = (best_of(f, args.repeats) for f in (raw, deser, ours))
