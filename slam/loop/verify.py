@@ -8,7 +8,9 @@ points, FFT cross-correlation over a few yaws around the guess). From every star
 coarse-to-fine GICP schedule runs, and each stage's result is kept only if it raises the
 fine-scale score (share of structured source points that meet a target surface): a coarse
 stage with long correspondences can slide a correct start metres along a road, and such a
-result scores worse at the fine scale and is discarded. The best-scoring result is judged:
+result scores worse at the fine scale and is discarded; when the fine stage from the coarse
+result still lands in a worse basin than the coarse result's score promised, it also runs from
+the start itself and the better of the two is kept. The best-scoring result is judged:
 
 - overlap: share of structured, steep source points with a target neighbour within a
   radius that grows with the point's range (the target's rings spread apart with range:
@@ -319,7 +321,8 @@ def verify(
         )  # fmt: skip
         starts.append(("bev", T_bev))
     best = None
-    for name, T in starts:  # coarse stage per start, kept only if it improves the fine score
+    for name, start in starts:  # coarse stage per start, kept only if it improves the fine score
+        T = start
         score = alignment_score(judged, ft, T, p)
         kept = []
         if coarse:
@@ -329,13 +332,27 @@ def verify(
                 T, score = np.array(c.T_target_source), c_score
                 kept.append("coarse")
         if best is None or score[0] > best[2][0]:
-            best = (name, T, score, kept)
-    name, T, score, kept = best
-    fine = _align(ft, fs, T, p.max_correspondence, p)  # the accurate stage, from the best start
-    f_score = alignment_score(judged, ft, fine.T_target_source, p)
-    if fine.converged or f_score[0] > score[0]:
-        T, score = np.array(fine.T_target_source), f_score
-        kept.append("fine")
+            best = (name, T, score, kept, start)
+    name, T, score, kept, start = best
+    if score[0] < 0.5 * p.min_overlap:  # hopeless: a fine stage cannot double the overlap
+        return VerifyResult(
+            False, T, score[1], score[0], np.degrees(yaw_of(T)), np.zeros((6, 6)),
+            f"overlap {score[0]:.2f} < {p.min_overlap:.2f} (coarse)", name, kept,
+        )  # fmt: skip
+    # the accurate stage, from the best start; when the coarse result leads the fine stage
+    # into a worse basin (the score drops), the fine stage also runs from the start itself
+    fines = [_align(ft, fs, T, p.max_correspondence, p)]
+    scores = [alignment_score(judged, ft, fines[0].T_target_source, p)]
+    if kept and scores[0][0] < score[0]:
+        fines.append(_align(ft, fs, start, p.max_correspondence, p))
+        scores.append(alignment_score(judged, ft, fines[1].T_target_source, p))
+        if scores[1][0] > scores[0][0]:
+            kept = []
+    k = int(np.argmax([sc[0] for sc in scores]))
+    fine = fines[k]
+    if fine.converged:
+        T, score = np.array(fine.T_target_source), scores[k]
+        kept = [*kept, "fine"]
     overlap, fitness = score
     yaw = yaw_of(T)
     info = scaled_information(
