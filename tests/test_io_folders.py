@@ -293,3 +293,19 @@ def test_kitti_empty_and_nan_bins_are_skipped(tmp_path):
         6,
         "empty file",
     ]
+
+
+def test_compressed_pcd_and_ply_through_open3d_damaged_ones_skipped(tmp_path):
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-5, 5, (40, 3))
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(xyz.astype(np.float32))
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "0.pcd"), pc, compressed=True)
+    assert b"DATA binary_compressed" in (tmp_path / "0.pcd").read_bytes()[:300]
+    write_cloud(tmp_path / "1.ply", xyz)
+    (tmp_path / "2.ply").write_bytes(b"")
+    (tmp_path / "3.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\ngarbage")
+    got = list(FolderSource(tmp_path))
+    np.testing.assert_allclose(got[0].xyz, xyz, atol=1e-6)
+    np.testing.assert_allclose(got[1].xyz, xyz, atol=1e-6)
+    assert [got[2].reason, got[3].reason] == ["empty file", "corrupt file"]
