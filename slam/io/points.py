@@ -132,7 +132,7 @@ def ring_int16(values: np.ndarray) -> np.ndarray | None:
     if v.size == 0:
         return v.astype(np.int16)
     if v.dtype.kind == "f":
-        if not np.isfinite(v).all() or not np.array_equal(v, np.round(v)):
+        if not finite_mask(v).all() or not np.array_equal(v, np.round(v)):
             return None
     if v.min() < _INT16.min or v.max() > _INT16.max:
         return None
@@ -202,7 +202,7 @@ def assemble_scan(
         integer = raw.dtype.kind in "iub"
         every = raw.astype(np.float64)
         values = kept(every)
-        if integer or np.isfinite(values).all():
+        if integer or finite_mask(values).all():
             # the unit from every point's time (no-return points too): the span of the
             # whole sweep, even when few points kept a finite coordinate
             known = every if integer else every[finite_mask(every)]
