@@ -41,6 +41,8 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
         f"{metrics.get('loops_closed', 0)} loop factors, {fps} frames/s, "
         f"peak memory {metrics.get('peak_memory_mb')} MiB"
     )
+    for note in summary.get("input_notes") or []:
+        _eprint(f"note: {note}")
     skipped = summary.get("skipped_messages") or {}
     if skipped:
         _eprint(
@@ -350,9 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
             help="override a config value, e.g. --set frontend.sor.k=8",
         )
         q.add_argument("--out", help="output folder (default: runs/<time>-<config>)")
-        q.add_argument(
-            "--start", type=int, metavar="N", help="start at input message N (0-based)"
-        )
+        q.add_argument("--start", type=int, metavar="N", help="start at input message N (0-based)")
         q.add_argument("--max-frames", type=int, metavar="M", help="stop after M frames")
         q.add_argument(
             "--strict",

@@ -77,7 +77,11 @@ def run_one(
         pipeline,
         out,
         resolved_config=resolved,
-        extra_metrics={"input": str(bag), "topic": getattr(source, "topic", None)},
+        extra_metrics={
+            "input": str(bag),
+            "topic": getattr(source, "topic", None),
+            "input_notes": list(getattr(source, "notes", [])),
+        },
     )
     summary: dict[str, Any] = {
         "out": out,
@@ -85,6 +89,7 @@ def run_one(
         "keyframes": len(state.keyframes),
         "stopped_by": state.stopped_by,
         "skipped_messages": dict(state.skipped_messages),
+        "input_notes": list(getattr(source, "notes", [])),
         "written": written,
         "pipeline": pipeline,
     }
@@ -132,5 +137,3 @@ def _loop_positions(pipeline: Any) -> list | None:
                     (st.estimates[ev.target][:3, 3].copy(), st.estimates[ev.source][:3, 3].copy())
                 )
     return pairs or None
-
-

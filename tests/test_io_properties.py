@@ -8,6 +8,7 @@ and the readers yield a SkippedMessage instead of raising. 500 examples per prop
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -35,6 +36,8 @@ NUMERIC = list(CODE_TO_DATATYPE)
 SETTINGS = settings(
     max_examples=500,
     deadline=None,
+    derandomize=os.environ.get("CI") == "true",  # CI: the same 500 examples every run
+    database=None if os.environ.get("CI") == "true" else settings.default.database,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 
