@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import gtsam
 import numpy as np
 import pytest
+from shared_data import SHARED_DATA, shared_path
 
 from backends.isam2 import Isam2Config, isam2_params
 from slam.errors import InputError, SlamError
@@ -21,8 +20,7 @@ from slam.pose_graph import (
     write_g2o,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pose_graphs"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"{DATA} not present")
+DATA = SHARED_DATA / "pose_graphs"
 
 
 def grid_graph_2d(n: int = 60, seed: int = 0):
@@ -113,10 +111,9 @@ def test_incremental_rejects_factors_on_unknown_poses():
         incremental_isam2(graph, initial)
 
 
-@needs_data
 @pytest.mark.parametrize("name", ["intel", "parking-garage"])
 def test_real_pose_graph_isam2_reaches_the_batch_optimum(name):
-    graph, initial = read_g2o(DATA / f"{name}.g2o")
+    graph, initial = read_g2o(shared_path("pose_graphs", f"{name}.g2o"))
     batch, _ = batch_lm(graph, initial)
     isam, _ = incremental_isam2(
         graph,
