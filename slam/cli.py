@@ -41,6 +41,8 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
         f"{metrics.get('loops_closed', 0)} loop factors, {fps} frames/s, "
         f"peak memory {metrics.get('peak_memory_mb')} MiB"
     )
+    if metrics.get("sensor"):
+        _eprint(f"sensor: {metrics['sensor']}")
     for note in summary.get("input_notes") or []:
         _eprint(f"note: {note}")
     skipped = summary.get("skipped_messages") or {}
@@ -70,17 +72,16 @@ def _stop_code(summary: dict[str, Any]) -> int:
 
 
 def apply_source_args(config: Any, args: argparse.Namespace) -> None:
-    """--start / --max-frames / --strict into the config's source section."""
-    from slam.config import SourceConfig, build_dataclass
+    """--start / --max-frames / --strict into the config's source section (validated)."""
+    import dataclasses
 
     src = config.source
-    values = {
-        "topic": src.topic,
-        "start": args.start if args.start is not None else src.start,
-        "max_frames": args.max_frames if args.max_frames is not None else src.max_frames,
-        "strict": bool(args.strict) or src.strict,
-    }
-    config.source = build_dataclass(SourceConfig, values, "source")
+    config.source = dataclasses.replace(
+        src,
+        start=args.start if args.start is not None else src.start,
+        max_frames=args.max_frames if args.max_frames is not None else src.max_frames,
+        strict=bool(args.strict) or src.strict,
+    )
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -35,16 +35,21 @@ class SourceConfig:
     topic: None = the only point-cloud topic. start: index of the first message used (the
     ones before are read and ignored). max_frames: stop after this many frames. strict: stop
     at the first damaged message or bad stamp (default: skip that frame, count it, go on).
+    beam_scans: the first scans the beam table (elevation per ring) is estimated from, so
+    that clouds without a ring field get one (slam.sensor); 0 = never.
     """
 
     topic: str | None = None
     start: int = 0
     max_frames: int | None = None
     strict: bool = False
+    beam_scans: int = 3
 
     def __post_init__(self) -> None:
         if self.start < 0:
             raise ConfigError(f"source.start must be >= 0, got {self.start}")
+        if self.beam_scans < 0:
+            raise ConfigError(f"source.beam_scans must be >= 0, got {self.beam_scans}")
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"source.max_frames must be >= 1, got {self.max_frames}")
 

@@ -79,6 +79,7 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "peak_memory_mb": round(peak_memory_mb(), 1),
         "frontend_means": {k: round(v, 4) for k, v in sorted(st.diagnostic_means().items())},
         "stopped_by": st.stopped_by,
+        "sensor": st.sensor,
         **(extra or {}),
     }
 

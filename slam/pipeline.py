@@ -76,6 +76,7 @@ class RunState:
     estimates: dict[int, np.ndarray] = field(default_factory=dict)
     wall_seconds: float = 0.0
     stopped_by: str | None = None
+    sensor: str | None = None  # the beam model, as inferred or read (BeamModel.describe)
 
     @property
     def frames(self) -> int:
@@ -129,6 +130,8 @@ class Pipeline:
             factor_sources if factor_sources is not None else build_factor_plugins(config.factors)
         )
         self.state = RunState()
+        self.beams: Any = None  # slam.sensor.BeamModel once estimated from the first scans
+        self._buffer: list[Scan] = []  # the first scans, held until the beam model exists
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self.view = GraphView(self.state.keyframes, self._estimate)
@@ -141,6 +144,49 @@ class Pipeline:
         if cached is None:
             cached = self._estimate_cache[kf_id] = self.backend.pose(kf_id).matrix()
         return cached
+
+    # ------------------------------------------------------------------ sensor
+    def _estimate_beams(self, scans: list[Scan]) -> None:
+        """The beam table from the first scans: the ring field when the driver gives one,
+        else the point layout / elevation histogram (slam.sensor). Logged once."""
+        from slam.sensor import beams_from_rings, estimate_beams
+
+        try:
+            if all(s.ring is not None for s in scans):
+                self.beams = beams_from_rings([s.xyz for s in scans], [s.ring for s in scans])
+            else:
+                self.beams = estimate_beams([s.xyz for s in scans])
+        except InputError as exc:  # e.g. a 2D laser: no beams to find, the features cope
+            log.info("no beam model: %s", exc)
+            self.beams = False
+            return
+        self.state.sensor = self.beams.describe()
+        log.info("sensor: %s", self.state.sensor)
+
+    def _with_rings(self, scan: Scan) -> Scan:
+        if scan.ring is None and self.beams and len(scan):
+            scan.ring = self.beams.ring_of(scan.xyz)
+        return scan
+
+    def _feed(self, scan: Scan) -> None:
+        """Hold the first ``source.beam_scans`` scans until the beam model exists."""
+        n = self.config.source.beam_scans
+        if self.beams is None and n > 0:
+            self._buffer.append(scan)
+            if len(self._buffer) >= n:
+                self._flush()
+            return
+        self.step(self._with_rings(scan))
+
+    def _flush(self) -> None:
+        """Estimate the beam model from the held scans (if not yet), then process them."""
+        if not self._buffer:
+            return
+        if self.beams is None:
+            self._estimate_beams(self._buffer)
+        held, self._buffer = self._buffer, []
+        for scan in held:
+            self.step(self._with_rings(scan))
 
     # ------------------------------------------------------------------ per frame
     def step(self, scan: Scan) -> None:
@@ -224,15 +270,16 @@ class Pipeline:
         if isinstance(item, SkippedMessage):
             self._skip(item, strict)
             return
-        if st.stamps and not float(item.stamp) > st.stamps[-1]:
-            kind = "duplicated stamp" if item.stamp == st.stamps[-1] else "stamp out of order"
+        last = self._buffer[-1].stamp if self._buffer else (st.stamps[-1] if st.stamps else None)
+        if last is not None and not float(item.stamp) > last:
+            kind = "duplicated stamp" if item.stamp == last else "stamp out of order"
             detail = (
-                f"stamp {item.stamp:.9f} s is not after the previous scan's {st.stamps[-1]:.9f} s"
+                f"stamp {item.stamp:.9f} s is not after the previous scan's {last:.9f} s"
                 " (dropped: the trajectory is never written out of order)"
             )
             self._skip(SkippedMessage(item.index, kind, detail), strict)
             return
-        self.step(item)
+        self._feed(item)
 
     def run(
         self,
@@ -259,11 +306,12 @@ class Pipeline:
             for i, item in enumerate(scans):
                 if i < start:
                     continue
-                if max_frames is not None and st.frames >= max_frames:
+                if max_frames is not None and st.frames + len(self._buffer) >= max_frames:
                     break
                 self._consume(item, strict)
                 if on_frame is not None:
                     on_frame(i + 1 - start)  # messages consumed (frames and skipped ones)
+            self._flush()  # a source shorter than the beam-model window
         except KeyboardInterrupt:
             st.stopped_by = "interrupted (Ctrl-C)"
         except InputError as exc:

@@ -109,3 +109,38 @@ def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
 def test_disabled_factor_plugin_is_not_built():
     sources = build_factor_plugins({"prior": {}, "odometry": {"enabled": False}})
     assert [s.name for s in sources] == ["prior"]
+
+
+class RingRecorder(ScriptedFrontend):
+    def process(self, scan: Scan) -> Odometry:
+        self.rings = getattr(self, "rings", []) + [scan.ring]
+        return super().process(scan)
+
+
+def _ringless_scan(i: int, rng) -> tuple[Scan, np.ndarray]:
+    """16 beams at -15..+15 deg on a 10-20 m cylinder, shuffled: no ring field, no layout."""
+    elev = np.radians(np.linspace(-15.0, 15.0, 16))
+    beam = rng.integers(0, 16, 20000)
+    az = rng.uniform(-np.pi, np.pi, 20000)
+    r = rng.uniform(10.0, 20.0, 20000)
+    xyz = np.column_stack(
+        [
+            r * np.cos(elev[beam]) * np.cos(az),
+            r * np.cos(elev[beam]) * np.sin(az),
+            r * np.sin(elev[beam]),
+        ]
+    )
+    return Scan(stamp=float(i), xyz=xyz, index=i), beam
+
+
+def test_scans_without_ring_get_rings_from_the_estimated_beam_table():
+    rng = np.random.default_rng(3)
+    made = [_ringless_scan(i, rng) for i in range(6)]
+    fe = RingRecorder(np.stack([np.eye(4)] * 6))
+    p = Pipeline(SlamConfig(), frontend=fe, factor_sources=[])
+    p.run([s for s, _ in made])
+    assert p.state.frames == 6 and len(fe.rings) == 6
+    for ring, (_, truth) in zip(fe.rings, made, strict=True):
+        np.testing.assert_array_equal(ring, truth)  # ring 0 = the lowest beam
+    assert p.beams.n_beams == 16
+    assert p.state.sensor.startswith("inferred 16 beams, +15.0..-15.0 deg")
