@@ -1,7 +1,8 @@
 """Shared fixtures: simulated sequences (generated once, cached; see slam.sim.cache).
 
 Short sequences (60 frames, ~6 s of driving) for fast tests; full ones (one lap and a
-revisit of the start) for end-to-end runs. The cache lives in $SLAM_CACHE/sim or
+revisit of the start) for end-to-end runs; short urban pieces with the 64- and 128-beam
+sensors (see slam.sim.sensors). The cache lives in $SLAM_CACHE/sim or
 ~/.cache/pyslam-graph/sim, so only the first test session pays for the simulation.
 """
 
@@ -36,3 +37,24 @@ def corridor_full() -> SimResult:
 def plaza_full() -> SimResult:
     """The whole plaza drive (~1.1 laps, ~750 frames)."""
     return ensure_sequence("plaza")
+
+
+@pytest.fixture(scope="session")
+def urban_short() -> SimResult:
+    """60 frames of the car-speed urban drive (VLP-16 with realistic errors): 1 s at a
+    standstill, then accelerating at 1.5 m/s^2 to ~7.5 m/s (~20 m)."""
+    return ensure_sequence("urban", frames=SHORT_FRAMES)
+
+
+@pytest.fixture(scope="session")
+def urban_hdl64_short() -> SimResult:
+    """30 frames of the urban drive with the KITTI-style HDL-64E (~130k points per scan,
+    x y z intensity only: no ring, no per-point time)."""
+    return ensure_sequence("urban", frames=30, sensor="hdl64")
+
+
+@pytest.fixture(scope="session")
+def urban_os128_short() -> SimResult:
+    """30 frames of the urban drive with the Ouster OS1-128 (~120k points per scan, `t` in
+    ns, 48-byte points, ring 0 = top beam, row-major)."""
+    return ensure_sequence("urban", frames=30, sensor="os128")

@@ -322,3 +322,7 @@ def test_simulate_rejects_bad_arguments(tmp_path):
         simulate("corridor", tmp_path, frames=100000)
     with pytest.raises(InputError):
         simulate("corridor", tmp_path, frames=2, fmt="zip")
+    with pytest.raises(InputError, match="os128"):
+        simulate("corridor", tmp_path, frames=2, sensor="vlp32")
+    with pytest.raises(InputError, match="urban"):
+        simulate("city", tmp_path, frames=2)
