@@ -80,7 +80,8 @@ class LoopClosurePlugin:
         max_correspondence / coarse_voxel / coarse_max_correspondence (m, GICP stages),
         global_search (m, bird's-eye-view start search, 0 = off), max_offset (m), inlier_distance
         (m) / beam_gap_deg (range-relative neighbour radius), plane_tolerance (m) /
-        plane_range_ratio, max_fitness (m, RMS point-to-plane), min_overlap (0-1),
+        plane_range_ratio, max_fitness (m, RMS point-to-plane), min_overlap (0-1) /
+        min_overlap_near / overlap_loss_per_m (share required falls with the offset, per m),
         yaw_tolerance_deg, max_verify (candidates tried per keyframe),
         min_keyframe_gap (keyframes after an accepted loop before the next may be accepted),
         consistency_base (m) / consistency_ratio: a registered loop may move the current
@@ -122,6 +123,8 @@ class LoopClosurePlugin:
         plane_range_ratio: float = 0.002
         max_fitness: float = 0.1
         min_overlap: float = 0.4
+        min_overlap_near: float = 0.65
+        overlap_loss_per_m: float = 0.015
         yaw_tolerance_deg: float = 15.0
         max_verify: int = 1
         min_keyframe_gap: int = 0
@@ -181,6 +184,8 @@ class LoopClosurePlugin:
             plane_range_ratio=cfg.plane_range_ratio,
             max_fitness=cfg.max_fitness,
             min_overlap=cfg.min_overlap,
+            min_overlap_near=cfg.min_overlap_near,
+            overlap_loss_per_m=cfg.overlap_loss_per_m,
             yaw_tolerance_deg=cfg.yaw_tolerance_deg,
             min_sigma_trans=cfg.min_sigma_trans,
             min_sigma_rot_deg=cfg.min_sigma_rot_deg,

@@ -18,6 +18,8 @@ the start itself and the better of the two is kept. The best-scoring result is j
   is within ``plane_tolerance`` (+ ``plane_range_ratio * range``, beam divergence);
 - fitness: RMS point-to-plane distance (m) of those inliers, which unlike point-to-point
   distances does not depend on the two scans' sampling densities;
+- the overlap required falls with the registered offset between the two sensors (scans
+  taken a metre apart see nearly the same surfaces; 17 m apart, half of them);
 - the registered yaw agrees with the guess.
 
 The 6x6 information comes from the fine registration's Hessian through
@@ -52,11 +54,16 @@ class VerifyParams:
     global_search (m): radius of the bird's-eye-view translation search (0 = off), on a grid
     of bev_cell (m), over yaws of bev_yaw_offsets_deg around the guess. max_offset (m): a
     registered offset longer than this is no revisit (the two scans would barely overlap).
+    global_skip_overlap: the search is skipped when the guess already scores this overlap.
     max_judged: the score uses at most this many source points (an even subsample).
     inlier_distance (m): neighbour radius near the sensor; beam_gap_deg: far away the radius
     is tan(beam_gap) x range (the coarsest common ring spacing, 16 beams over 30 deg: 2 deg).
     plane_tolerance (m) + plane_range_ratio x range: max point-to-plane distance of an inlier.
-    max_fitness: max RMS point-to-plane distance (m) of inliers. min_overlap: min inlier share.
+    max_fitness: max RMS point-to-plane distance (m) of inliers. min_overlap: min inlier share;
+    two scans taken close together see the same surfaces, so the share required is
+    max(min_overlap, min_overlap_near - overlap_loss_per_m x registered offset in m): a
+    look-alike place that matches only half its structure at 0.3 m offset is no revisit
+    (real same-place scans: 0.84 at 0.5-2 m, 0.53 at 17 m apart).
     yaw_tolerance_deg: max |registered yaw - guess yaw|. min_sigma_*: sigma floor of the
     loop's information; max_sigma_ratio caps the weakest direction's sigma at that multiple."""
 
@@ -66,6 +73,7 @@ class VerifyParams:
     coarse_max_correspondence: float = 2.0
     global_search: float = 20.0
     max_offset: float = 20.0
+    global_skip_overlap: float = 0.8
     bev_cell: float = 0.5
     bev_yaw_offsets_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
     max_iterations: int = 30
@@ -75,6 +83,8 @@ class VerifyParams:
     plane_range_ratio: float = 0.002
     max_fitness: float = 0.1
     min_overlap: float = 0.4
+    min_overlap_near: float = 0.65
+    overlap_loss_per_m: float = 0.015
     yaw_tolerance_deg: float = 15.0
     min_sigma_trans: float = 0.01
     min_sigma_rot_deg: float = 0.1
@@ -279,6 +289,11 @@ def alignment_score(
     return overlap, fitness
 
 
+def required_overlap(offset: float, p: VerifyParams) -> float:
+    """Inlier share a registration with this offset (m) between the sensors must reach."""
+    return max(p.min_overlap, p.min_overlap_near - p.overlap_loss_per_m * offset)
+
+
 def _align(t: _Prepared, s: _Prepared, T: np.ndarray, corr: float, p: VerifyParams):
     return small_gicp.align(
         t.cloud, s.cloud, t.tree, init_T_target_source=T, registration_type="GICP",
@@ -313,15 +328,17 @@ def verify(
         ct, cs = (_prepare(tgt, p.coarse_voxel, p.num_threads),
                   _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
     judged = judged_points(fs, T0[:3, :3], p.max_judged)
-    starts = [("guess", T0)]
-    if p.global_search > 0.0:
-        T_bev, _ = bev_translation(
-            ct.points if coarse else tgt, cs.points if coarse else src, guess_yaw,
-            p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
-        )  # fmt: skip
-        starts.append(("bev", T_bev))
     best = None
-    for name, start in starts:  # coarse stage per start, kept only if it improves the fine score
+    for name in ("guess", "bev"):  # coarse stage per start, kept only if it improves the score
+        if name == "bev":
+            if p.global_search <= 0.0 or best[2][0] >= p.global_skip_overlap:
+                break  # off, or the guess already explains the scan
+            start, _ = bev_translation(
+                ct.points if coarse else tgt, cs.points if coarse else src, guess_yaw,
+                p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
+            )  # fmt: skip
+        else:
+            start = T0
         T = start
         score = alignment_score(judged, ft, T, p)
         kept = []
@@ -363,8 +380,10 @@ def verify(
         reason = "gicp did not converge"
     elif np.linalg.norm(T[:3, 3]) > p.max_offset:
         reason = f"offset {np.linalg.norm(T[:3, 3]):.1f} m > {p.max_offset:.1f} m"
-    elif overlap < p.min_overlap:
-        reason = f"overlap {overlap:.2f} < {p.min_overlap:.2f}"
+    elif overlap < required_overlap(float(np.linalg.norm(T[:3, 3])), p):
+        reason = (
+            f"overlap {overlap:.2f} < {required_overlap(float(np.linalg.norm(T[:3, 3])), p):.2f}"
+        )
     elif fitness > p.max_fitness:
         reason = f"fitness {fitness:.3f} m > {p.max_fitness:.3f} m"
     elif abs(np.degrees(wrap_angle(yaw - guess_yaw))) > p.yaw_tolerance_deg:
