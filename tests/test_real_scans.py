@@ -1,0 +1,146 @@
+"""Real scans: the beam model of a real HDL-64E, and registration of real HDL-64E / HDL-32E
+scans by the default front end against small_gicp and the pair's reference transform.
+
+Data: ``../shared/data/kitti_raw_drive`` (22 consecutive KITTI-raw HDL-64E scans, no ring,
+no time, no ground truth) and ``../shared/data/scan_pair`` (two HDL-32E scans and the
+reference T_target_source). Rings are inferred once from the first scans, as the pipeline
+does for clouds without a ring field.
+"""
+
+from __future__ import annotations
+
+import tarfile
+
+import numpy as np
+import pytest
+import small_gicp
+from shared_data import shared_path
+
+from slam.config import load_config
+from slam.io.folders import cloud_files, read_cloud
+from slam.plugins import instantiate
+from slam.preprocess.knn import knn
+from slam.sensor import estimate_beams
+from slam.types import Scan
+
+N_KITTI = 8  # consecutive scans registered (~0.8 m apart at ~8 m/s)
+
+
+@pytest.fixture(scope="module")
+def kitti(tmp_path_factory) -> list[Scan]:
+    tmp = tmp_path_factory.mktemp("kitti_raw")
+    with tarfile.open(shared_path("kitti_raw_drive", "data_1.tar.xz"), "r:xz") as tar:
+        tar.extractall(tmp, filter="data")
+    files = cloud_files(tmp / "data_1")
+    assert len(files) == 22
+    return [read_cloud(f, index=i, stamp=0.1 * i) for i, f in enumerate(files[:N_KITTI])]
+
+
+def motion_error(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of A^-1 B."""
+    D = np.linalg.inv(A) @ B
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+
+
+def small_gicp_motion(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """small_gicp's scan-to-scan GICP on 0.25 m downsampled clouds (its default use)."""
+    tgt, tree = small_gicp.preprocess_points(target, 0.25, num_threads=2)
+    src, _ = small_gicp.preprocess_points(source, 0.25, num_threads=2)
+    res = small_gicp.align(tgt, src, tree, np.eye(4), registration_type="GICP", num_threads=2)
+    return res.T_target_source
+
+
+def map_blur(scans: list[Scan], poses: list[np.ndarray], voxel: float = 0.15) -> float:
+    """Crispness of the map the poses build (m): per scan, the median distance of its points
+    (``voxel``-downsampled) to the local planes (8 neighbours within 0.5 m, planar) of the
+    two scans before and after it, averaged over the scans. Wrong poses blur the map: 1 cm
+    of random pose noise raises it by ~0.1 cm on these scans."""
+    world = []
+    for s, P in zip(scans, poses, strict=True):
+        x = s.xyz[np.sort(np.unique(np.floor(s.xyz / voxel), axis=0, return_index=True)[1])]
+        world.append(x @ P[:3, :3].T + P[:3, 3])
+    blur = []
+    for i, w in enumerate(world):
+        near = [j for j in range(max(0, i - 2), min(i + 3, len(world))) if j != i]
+        others = np.concatenate([world[j] for j in near])
+        idx, dist = knn(others, w, 8)
+        ok = dist[:, -1] < 0.5
+        nb = others[idx[ok]]
+        c = nb.mean(axis=1)
+        ev, evec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb - c[:, None], nb - c[:, None]))
+        planar = ev[:, 0] < 0.05 * ev[:, 1]
+        d = np.abs(np.einsum("ni,ni->n", w[ok] - c, evec[:, :, 0]))
+        blur.append(np.median(d[planar]))
+    return float(np.mean(blur))
+
+
+def default_frontend_poses(scans: list[Scan]) -> list[np.ndarray]:
+    """T_odom_sensor per scan from the default recipe's front end, rings from the beam model."""
+    model = estimate_beams([s.xyz for s in scans[:3]])
+    fe = instantiate("slam.frontends", load_config().frontend, "frontend")
+    poses = []
+    for s in scans:
+        ring = model.ring_of(s.xyz)
+        poses.append(fe.process(Scan(s.stamp, s.xyz, s.intensity, ring, s.time, s.index)).pose)
+    return poses
+
+
+def test_hdl64_beam_model(kitti):
+    model = estimate_beams([s.xyz for s in kitti[:3]])
+    assert model.n_beams == 64 and model.layout
+    # seen from the sensor origin (KITTI's velodyne frame) the beams span +2.9..-23.7 deg:
+    # the data sheet's +2..-24.9 deg are angles at each laser's own origin, a few cm off
+    lo, hi = model.fov_deg
+    assert abs(hi - 2.9) < 0.3 and abs(lo + 23.7) < 0.3
+    gaps = np.diff(model.elevations_deg)
+    # non-uniform blocks: lower block ~1/2 deg apart, upper block ~1/3 deg
+    assert 0.4 < np.median(gaps[:30]) < 0.6 and 0.25 < np.median(gaps[34:]) < 0.4
+    ring = model.ring_of(kitti[5].xyz)
+    counts = np.bincount(ring, minlength=64)
+    # every beam holds most of a turn (the lowest, half hidden by the car: ~800 points)
+    assert len(counts) == 64 and counts.min() > 500
+    # rings are elevation bands in order, although seen from the origin one beam's elevation
+    # varies by ~0.5 deg with range (its laser sits a few cm off the origin): nearest-angle
+    # assignment would give 40 % of the points the wrong beam
+    elev = np.degrees(np.arctan2(kitti[5].xyz[:, 2], np.hypot(*kitti[5].xyz[:, :2].T)))
+    med = np.array([np.median(elev[ring == r]) for r in range(64)])
+    assert np.all(np.diff(med) > 0.1)
+
+
+def test_kitti_consecutive_scans_agree_with_small_gicp(kitti):
+    """Our scan-to-map odometry vs small_gicp's scan-to-scan, frame by frame, and which of
+    the two builds the crisper map (no ground truth: the map is the judge)."""
+    poses = default_frontend_poses(kitti)
+    ref = [small_gicp_motion(a.xyz, b.xyz) for a, b in zip(kitti[:-1], kitti[1:], strict=True)]
+    err = np.array(
+        [motion_error(np.linalg.inv(poses[i]) @ poses[i + 1], r) for i, r in enumerate(ref)]
+    )
+    travel = np.linalg.norm((np.linalg.inv(poses[0]) @ poses[-1])[:3, 3])
+    assert travel > 4.0  # the car really moves (~0.8 m per scan)
+    # measured: 0.3-2.9 cm (mean 0.8) and <= 0.06 deg per frame; small_gicp itself moves
+    # by up to 0.5 cm between 0.25 m and 0.1 m downsampling
+    assert err[:, 0].mean() < 0.012, err[:, 0]
+    assert err[:, 0].max() < 0.035, err[:, 0]
+    assert err[:, 1].max() < 0.1, err[:, 1]
+    chained = [np.eye(4)]
+    for r in ref:
+        chained.append(chained[-1] @ r)
+    ours, theirs = map_blur(kitti, poses), map_blur(kitti, chained)
+    assert ours < 1.02 * theirs, (ours, theirs)  # measured 22 scans: 0.89 vs 0.93 cm
+
+
+def test_hdl32_pair_against_reference():
+    pair = shared_path("scan_pair")
+    T_ref = np.loadtxt(pair / "T_target_source.txt")
+    tgt = read_cloud(pair / "target.ply", index=0, stamp=0.0)
+    src = read_cloud(pair / "source.ply", index=1, stamp=0.1)
+    model = estimate_beams([tgt.xyz, src.xyz])
+    assert model.n_beams == 32 and not model.layout  # firing order: from the histogram
+    assert np.allclose(model.fov_deg, (-30.67, 10.67), atol=0.05)
+    poses = default_frontend_poses([tgt, src])
+    t_err, r_err = motion_error(np.linalg.inv(poses[0]) @ poses[1], T_ref)
+    # measured 1.9 cm / 0.24 deg (mostly roll); small_gicp at 0.25 m: 0.7 cm / 0.33 deg, and
+    # its roll moves by 0.8 deg between 0.1 and 0.4 m downsampling (the reference is its
+    # 0.1 m result): roll is weakly constrained on this pair
+    assert t_err < 0.025 and r_err < 0.3, (t_err, r_err)
