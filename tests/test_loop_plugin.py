@@ -397,3 +397,55 @@ def test_verify_judges_a_vegetated_revisit_on_structured_surfaces(monkeypatch):
     old = verify(target, source, init)
     assert old.overlap < res.overlap - 0.1, (old.overlap, res.overlap)
     assert old.fitness < 0.1
+
+
+def test_bev_translation_finds_a_metres_long_offset():
+    """The bird's-eye-view start: two hall scans 10 m apart, turned 10 deg, guess 12 deg."""
+    verify_mod = importlib.import_module("slam.loop.verify")
+    rng = np.random.default_rng(4)
+    scene = _scene(_hall_boxes())
+    Ta, Tb = _pose(12, 6, 0.0), _pose(22, 7, np.radians(10))
+    a, b = _scan(scene, Ta, rng), _scan(scene, Tb, rng)
+    T_true = np.linalg.inv(Ta) @ Tb
+    T, share = verify_mod.bev_translation(a, b, np.radians(12), 20.0, 0.5, (-6, -3, 0, 3, 6))
+    assert np.linalg.norm(T[:2, 3] - T_true[:2, 3]) < 1.0, (T[:3, 3], T_true[:3, 3])
+    assert abs(np.degrees(verify_mod.yaw_of(T)) - 10.0) <= 3.0
+    assert 0.0 < share <= 1.0
+    res = verify(a, b, yaw_matrix(np.radians(12)))  # from the yaw alone, 10 m off
+    assert res.accepted, res.reason
+    assert _err(res.T_target_source, T_true)[0] < 0.05
+
+
+def test_required_overlap_falls_with_the_offset():
+    verify_mod = importlib.import_module("slam.loop.verify")
+    p = VerifyParams()
+    assert verify_mod.required_overlap(0.0, p) == pytest.approx(0.65)
+    assert verify_mod.required_overlap(10.0, p) == pytest.approx(0.5)
+    assert verify_mod.required_overlap(40.0, p) == pytest.approx(p.min_overlap)
+
+
+def test_auto_geometry_pools_the_first_keyframes():
+    """One short-street keyframe (45 m) must not fix the range for a sensor that sees 60 m."""
+    from slam.loop.plugin import auto_descriptor_params
+
+    rng = np.random.default_rng(0)
+
+    def ring(reach, n=20000):
+        r = reach * np.sqrt(rng.random(n))
+        a = rng.uniform(0, 2 * np.pi, n)
+        z = np.where(rng.random(n) < 0.3, -1.7, rng.uniform(-1.7, 5.0, n))
+        return np.column_stack([r * np.cos(a), r * np.sin(a), z])
+
+    cfg = LoopClosurePlugin.Config()
+    first_only = auto_descriptor_params([ring(45.0)], cfg)
+    pooled = auto_descriptor_params([ring(45.0)] + [ring(62.0) for _ in range(9)], cfg)
+    assert first_only.max_radius <= 55.0
+    assert pooled.max_radius >= 70.0
+    assert pooled.lidar_height == pytest.approx(1.7, abs=0.05)
+    plugin = LoopClosurePlugin(cfg)
+    view = GraphView([], lambda i: np.eye(4))
+    for i in range(cfg.auto_keyframes):
+        kf = Keyframe(i, 0.1 * i, i, np.eye(4), np.eye(4), np.eye(6), ring(62.0, 3000))
+        plugin.on_keyframe(kf, view)
+        assert (plugin.sc_params is None) == (i < cfg.auto_keyframes - 1)
+    assert len(plugin.db) == cfg.auto_keyframes  # the buffered keyframes are all described
