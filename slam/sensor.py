@@ -31,6 +31,7 @@ MIN_BEAM_GAP_DEG = 0.1  # two peaks closer than this are one beam
 MIN_PEAK_SHARE = 0.05  # a peak holding < 5 % of the median peak's points is noise
 MIN_TURN_BEAMS, MAX_TURN_BEAMS = 4, 256  # layout cue: accepted number of azimuth turns
 MIN_TURN_POINTS = 100  # a beam of a layout scan has at least this many points
+MAX_BACK_STEP_DEG = 5.0  # layout: a larger backward azimuth step is a forward gap
 LAYOUT_SEAM_DEG = 3.0  # beams of a layout scan start their turn within this azimuth
 
 
@@ -63,11 +64,16 @@ def layout_rings(xyz: np.ndarray) -> np.ndarray | None:
     n = len(xyz)
     if n < MIN_TURN_BEAMS * MIN_TURN_POINTS:
         return None
-    az = np.unwrap(np.arctan2(xyz[:, 1], xyz[:, 0]))
-    sign = 1.0 if az[-1] >= az[0] else -1.0
-    u = sign * (az - az[0])
-    if np.mean(np.diff(u) < -1e-3) > 0.05:  # a firing-order cloud steps back every column
+    step = np.diff(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    step = (step + np.pi) % (2 * np.pi) - np.pi  # in [-pi, pi)
+    sign = 1.0 if np.median(step) >= 0 else -1.0  # direction of rotation along the order
+    step *= sign
+    if np.mean(step < -1e-3) > 0.05:  # a firing-order cloud steps back every column
         return None
+    # within a beam's turn the azimuth only advances: a large backward step is a forward gap
+    # (no returns over > 180 deg, e.g. sky), not a step back
+    step = np.where(step < -np.radians(MAX_BACK_STEP_DEG), step + 2 * np.pi, step)
+    u = np.r_[0.0, np.cumsum(step)]
     turn = np.floor(u / (2 * np.pi)).astype(np.int64)
     n_turns = int(turn[-1]) + 1
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS + 1:

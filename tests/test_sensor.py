@@ -90,3 +90,21 @@ def test_bad_input() -> None:
         estimate_beams([])
     with pytest.raises(InputError):
         BeamModel(np.array([0.0])).ring_of(np.zeros(3))
+
+
+def test_layout_with_wide_gaps_in_upper_beams() -> None:
+    """Upper beams that see sky over half the turn (a gap > 180 deg) keep their layout."""
+    elev = SENSORS["HDL-64E"]
+    xyz, ring = spin(elev, 900, "ring")
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) % 360
+    keep = ~((ring >= 48) & (az > 60) & (az < 270))  # 210 deg without returns
+    model = estimate_beams([xyz[keep]])
+    assert model.n_beams == 64 and model.layout
+    assert np.array_equal(model.ring_of(xyz[keep]), ring[keep])
+
+
+def test_layout_top_beam_first_is_numbered_from_the_bottom() -> None:
+    elev = SENSORS["OS-128"]
+    xyz, ring = spin(elev, 512, "ring")
+    flip = np.argsort(-ring, kind="stable")  # beams stored from the top down
+    assert np.array_equal(layout_rings(xyz[flip]), ring[flip])
