@@ -52,36 +52,88 @@ def _group_medians(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
     return med
 
 
-def layout_rings(xyz: np.ndarray) -> np.ndarray | None:
-    """(N,) ring of each point from the stored order when the cloud is stored beam by beam,
-    else None. Ring 0 = lowest beam.
-
-    Beam by beam: along the order the azimuth unwraps to a whole number of turns (one per
-    beam), mostly monotone, and the turns' median elevations are monotone. Points within
-    LAYOUT_SEAM_DEG of a turn's seam (beams start their turn a little staggered) join the
-    adjacent turn whose median elevation is nearer.
-    """
-    n = len(xyz)
-    if n < MIN_TURN_BEAMS * MIN_TURN_POINTS:
+def _forward_azimuth(xyz: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """(u, sign, az0): the azimuth (rad) advanced along the stored order from the first point,
+    the rotation's sign and the first point's azimuth; None for clouds whose azimuth steps
+    back often (firing order: every column) or that are too small for a layout."""
+    if len(xyz) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
         return None
-    step = np.diff(np.arctan2(xyz[:, 1], xyz[:, 0]))
-    step = (step + np.pi) % (2 * np.pi) - np.pi  # in [-pi, pi)
+    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+    step = (np.diff(az) + np.pi) % (2 * np.pi) - np.pi  # in [-pi, pi)
     sign = 1.0 if np.median(step) >= 0 else -1.0  # direction of rotation along the order
     step *= sign
-    if np.mean(step < -1e-3) > 0.05:  # a firing-order cloud steps back every column
+    if np.mean(step < -1e-3) > 0.05:
         return None
     # within a beam's turn the azimuth only advances: a large backward step is a forward gap
     # (no returns over > 180 deg, e.g. sky), not a step back
     step = np.where(step < -np.radians(MAX_BACK_STEP_DEG), step + 2 * np.pi, step)
     u = np.r_[0.0, np.cumsum(step)]
+    n_est = int(u[-1] // (2 * np.pi)) + 1
+    if not MIN_TURN_BEAMS <= n_est <= MAX_TURN_BEAMS + 1:
+        return None
+    return u, sign, float(az[0])
+
+
+def _turn_spread(u: np.ndarray, elev: np.ndarray, phase: float) -> float:
+    """Mean |elevation - its turn's median| (deg) when the turns begin at ``phase`` (rad)."""
+    turn = np.floor((u - phase) / (2 * np.pi)).astype(np.int64)
+    turn -= turn.min()
+    med = _group_medians(elev, turn, int(turn.max()) + 1)
+    return float(np.mean(np.abs(elev - med[turn])))
+
+
+def layout_seam(xyz: np.ndarray) -> float | None:
+    """Azimuth (rad, atan2 frame) where the beams of a beam-by-beam cloud begin their turn,
+    or None when the cloud is not stored beam by beam.
+
+    Candidates: the first point's azimuth, the circular median of the azimuths after the
+    largest elevation jumps along the order (a top beam may begin after a stretch of sky)
+    and every 15 deg; the one whose turns are the tightest elevation bands wins.
+    """
+    fa = _forward_azimuth(xyz)
+    if fa is None:
+        return None
+    u, sign, az0 = fa
+    elev = elevation_deg(xyz)
+    n_est = int(u[-1] // (2 * np.pi)) + 1
+    top = np.argpartition(-np.abs(np.diff(elev)), n_est - 2)[: n_est - 1] + 1
+    ph = u[top] % (2 * np.pi)
+    mean = np.arctan2(np.sin(ph).mean(), np.cos(ph).mean())
+    jump_phase = (mean + np.median((ph - mean + np.pi) % (2 * np.pi) - np.pi)) % (2 * np.pi)
+    cands = np.r_[0.0, jump_phase, np.radians(np.arange(15.0, 360.0, 15.0))]
+    sub = slice(None, None, 4)
+    spread = [_turn_spread(u[sub], elev[sub], c) for c in cands]
+    return float(az0 + sign * cands[int(np.argmin(spread))])
+
+
+def layout_rings(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | None:
+    """(N,) ring of each point from the stored order when the cloud is stored beam by beam,
+    else None. Ring 0 = lowest beam. seam: azimuth (rad) where the turns begin
+    (``layout_seam``; searched when None).
+
+    Beam by beam: along the order the azimuth advances by a whole number of turns (one per
+    beam), mostly monotone, and the turns' median elevations are monotone. Points within
+    LAYOUT_SEAM_DEG of the seam (beams begin their turn a little staggered) join the
+    adjacent turn whose median elevation is nearer.
+    """
+    fa = _forward_azimuth(xyz)
+    if fa is None:
+        return None
+    u, sign, az0 = fa
+    if seam is None:
+        seam = layout_seam(xyz)
+        if seam is None:
+            return None
+    u = u - (sign * (seam - az0)) % (2 * np.pi)
+    elev = elevation_deg(xyz)
     turn = np.floor(u / (2 * np.pi)).astype(np.int64)
-    n_turns = int(turn[-1]) + 1
+    turn -= turn.min()
+    n_turns = int(turn.max()) + 1
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS + 1:
         return None
-    phase = u - 2 * np.pi * turn
-    seam = np.radians(LAYOUT_SEAM_DEG)
-    lo, hi = phase < seam, phase > 2 * np.pi - seam
-    elev = elevation_deg(xyz)
+    phase = u - 2 * np.pi * np.floor(u / (2 * np.pi))
+    window = np.radians(LAYOUT_SEAM_DEG)
+    lo, hi = phase < window, phase > 2 * np.pi - window
     clear = ~(lo | hi)
     med = _group_medians(elev[clear], turn[clear], n_turns)
     for near, other in ((lo, turn - 1), (hi, turn + 1)):
@@ -126,13 +178,15 @@ class BeamModel:
 
     elevations_deg: (B,) ascending beam elevations (deg) seen from the sensor origin, ring r
     = elevations_deg[r]. layout: True when the clouds are stored beam by beam (``ring_of``
-    then reads the rings from the point order). max_range: 99th percentile of the ranges (m)
+    then reads the rings from the point order); seam_rad: the azimuth (rad) where their
+    turns begin. max_range: 99th percentile of the ranges (m)
     of the scans it was estimated from (e.g. Scan Context's radius). source: "ring field",
     "point layout" or "elevation histogram".
     """
 
     elevations_deg: np.ndarray
     layout: bool = False
+    seam_rad: float | None = None
     max_range: float = 0.0
     source: str = "elevation histogram"
 
@@ -159,7 +213,7 @@ class BeamModel:
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
         if self.layout:
-            ring = layout_rings(xyz)
+            ring = layout_rings(xyz, self.seam_rad)
             if ring is not None and int(ring.max()) + 1 == self.n_beams:
                 return ring
         mid = 0.5 * (self.elevations_deg[1:] + self.elevations_deg[:-1])
@@ -218,13 +272,17 @@ def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
     """
     scans = _check_scans(scans)
     max_range = float(np.percentile(_ranges(scans), 99))
-    per_scan = [layout_rings(s) for s in scans]
-    counts = {None if r is None else int(r.max()) + 1 for r in per_scan}
-    if None not in counts and len(counts) == 1:
-        elev = np.concatenate([elevation_deg(s) for s in scans])
-        ring = np.concatenate(per_scan).astype(np.int64)
-        n = counts.pop()
-        med = _group_medians(elev, ring, n)
-        return BeamModel(np.sort(med), layout=True, max_range=max_range, source="point layout")
+    seams = [layout_seam(s) for s in scans]
+    if all(x is not None for x in seams):
+        # one seam for the sensor: the circular median of the scans'
+        ref = float(seams[0])
+        seam = ref + float(np.median([(x - ref + np.pi) % (2 * np.pi) - np.pi for x in seams]))
+        per_scan = [layout_rings(s, seam) for s in scans]
+        counts = {None if r is None else int(r.max()) + 1 for r in per_scan}
+        if None not in counts and len(counts) == 1:
+            elev = np.concatenate([elevation_deg(s) for s in scans])
+            ring = np.concatenate(per_scan).astype(np.int64)
+            med = _group_medians(elev, ring, counts.pop())
+            return BeamModel(np.sort(med), True, seam, max_range=max_range, source="point layout")
     elev = np.concatenate([elevation_deg(s) for s in scans])
     return BeamModel(_histogram_beams(elev), layout=False, max_range=max_range)
