@@ -108,3 +108,20 @@ def test_layout_top_beam_first_is_numbered_from_the_bottom() -> None:
     xyz, ring = spin(elev, 512, "ring")
     flip = np.argsort(-ring, kind="stable")  # beams stored from the top down
     assert np.array_equal(layout_rings(xyz[flip]), ring[flip])
+
+
+def test_layout_seam_when_the_first_beam_begins_late() -> None:
+    """The first stored beam sees sky over its first 40 deg: the cloud's first point is not
+    where the turns begin, the seam is found from the data (an Ouster row after sky)."""
+    elev = SENSORS["OS-128"]
+    xyz, ring = spin(elev, 1024, "ring")
+    flip = np.argsort(-ring, kind="stable")  # top beam first, as Ouster stores rows
+    xyz, ring = xyz[flip], ring[flip]
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) % 360
+    keep = ~((ring >= 126) & (az < 40))
+    model = estimate_beams([xyz[keep]])
+    assert model.layout and model.n_beams == 128
+    assert (
+        abs(np.degrees(model.seam_rad) % 360 - 0.0) < 1.0 or np.degrees(model.seam_rad) % 360 > 359
+    )
+    assert np.array_equal(model.ring_of(xyz[keep]), ring[keep])
