@@ -210,6 +210,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             fmt=args.format,
             seed=args.seed,
             pedestrians=not args.no_pedestrians,
+            sensor=args.sensor,
             progress=progress,
         )
     finally:
@@ -378,11 +379,19 @@ def build_parser() -> argparse.ArgumentParser:
     common_run(q)
     q.set_defaults(func=cmd_compare)
 
-    q = sub.add_parser("simulate", help="simulate a 16-beam lidar sequence into a bag")
+    q = sub.add_parser("simulate", help="simulate a LiDAR sequence (16-128 beams) into a bag")
     q.add_argument(
         "scene",
         help="corridor | plaza (ideal sensor) | park (realistic sensor: calibration errors, "
-        "mixed pixels, porous trees, terrain)",
+        "mixed pixels, porous trees, terrain) | urban (car-speed city drive, 1.2 km, up to "
+        "15 m/s, stops, junctions, streets driven both ways; realistic sensor)",
+    )
+    q.add_argument(
+        "--sensor",
+        default="vlp16",
+        choices=["vlp16", "hdl32", "hdl64", "os128"],
+        help="vlp16 (default) | hdl32 | hdl64 (KITTI-style bag: no ring/time fields) | "
+        "os128 (Ouster layout: t in ns, 48-byte points)",
     )
     q.add_argument("out", help="output folder")
     q.add_argument("--frames", type=int, help="number of scans (default: the whole path)")
