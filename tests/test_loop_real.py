@@ -175,3 +175,15 @@ def test_real_kitti_drive_through_the_plugin(kitti):
         assert t < 0.05 and r < 0.3, (e.source, e.target, t, r)
         sig = np.sqrt(np.diag(np.linalg.inv(e.info)))
         assert np.all(sig[3:] >= 0.05 * 0.999)  # the factor claims no more than its floor
+
+
+def test_real_kitti_revisit_seen_turned_with_a_coarse_yaw_guess(kitti):
+    """The same street 12 m on, the sensor turned by -150 deg; the guess 5 deg off (a Scan
+    Context sector is 6 deg): the transform is still found."""
+    scans, _, ref = kitti
+    R = yaw_matrix(np.radians(-150.0))
+    turned = scans[15] @ R[:3, :3]  # T_0_turned = T_0_15 @ R
+    res = verify(scans[0], turned, yaw_matrix(np.radians(-145.0)))
+    assert res.accepted, res.reason
+    t, r = _err(res.T_target_source, ref[15] @ R)
+    assert t < 0.05 and r < 0.3, (t, r)
