@@ -1,6 +1,17 @@
 """What the scan-to-map front ends share: cropping, constant-velocity prediction, deskew,
-keyframe selection, information of the keyframe-to-keyframe motion and never crashing on a
-bad scan. A front end subclasses ``ScanToMapFrontend`` and implements ``_estimate``.
+keyframe selection, information of the keyframe-to-keyframe motion, never crashing on a
+bad scan, and not believing a registration that is implausible (lost tracking).
+
+A front end subclasses ``ScanToMapFrontend`` and implements ``_estimate`` (register the
+scan against the map, without changing the map) and ``_insert`` (add a trusted scan to
+the map). Between the two the frame loop judges the registration
+(``slam.registration.plausibility``): an implausible one is replaced by the
+constant-velocity prediction, is not inserted into the map, does not update the motion
+model or the deskew twist, and the frame is flagged (``extras["lost"]`` = the reason,
+``extras["rejected"]`` = 1). While tracking is lost the next scans are registered with a
+wider search (coarse pass with ``recovery_correspondence_factor`` times the correspondence
+distance from the prediction, then the normal pass), and the first plausible result
+re-acquires the map (``extras["recovered"]`` = 1).
 """
 
 from __future__ import annotations
@@ -14,12 +25,14 @@ import numpy as np
 from slam.deskew import deskew, se3_log
 from slam.frontend import KeyframeConfig, is_new_keyframe
 from slam.preprocess.voxel import voxel_downsample
-from slam.registration.gicp import RegistrationError, se3_exp
+from slam.registration.gicp import RegistrationError, RegistrationResult, se3_exp
 from slam.registration.information import (
+    Information,
     InformationConfig,
     default_information,
     information_from_hessian,
 )
+from slam.registration.plausibility import PlausibilityConfig, RunningNormal, implausibility
 from slam.types import Odometry, Scan
 
 log = logging.getLogger(__name__)
@@ -39,6 +52,12 @@ class CommonConfig:
     cloud_voxel: voxel (m) of ``Odometry.cloud``.
     drift_translation / drift_rotation_deg_per_m: odometry drift per metre travelled added to
     the covariance of the keyframe-to-keyframe motion.
+    plausibility: the gate of each registration (see ``slam.registration.plausibility``).
+    recovery_correspondence_factor: while tracking is lost, a coarse registration with this
+    many times the correspondence distance runs from the prediction before the normal one.
+    max_lost_frames: after this many consecutive lost frames the running normal is
+    forgotten and the next converged, physically possible registration is trusted (the
+    scene changed for good: re-initialisation, ``extras["reinitialised"]`` = 1).
     """
 
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -52,38 +71,44 @@ class CommonConfig:
     deskew_smoothing: float = 0.7
     drift_translation: float = 0.01
     drift_rotation_deg_per_m: float = 0.1
+    plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)
+    recovery_correspondence_factor: float = 3.0
+    max_lost_frames: int = 50
 
 
 @dataclass
 class Estimate:
     """What ``_estimate`` returns: the pose T_odom_sensor, registration Hessian/variance (or
-    None when there was nothing to register against) and diagnostics."""
+    None when there was nothing to register against), diagnostics, the registration result
+    (None without one), ``pending``: what ``_insert`` adds to the map if it is trusted, and
+    the registration's information once computed."""
 
     pose: np.ndarray
     H: np.ndarray | None = None
     residual_variance: float = 1.0
     extras: dict = field(default_factory=dict)
+    result: RegistrationResult | None = None
+    pending: object = None
+    information: Information | None = None
 
     @classmethod
-    def from_registration(cls, res, extras: dict) -> Estimate:
+    def from_registration(cls, res: RegistrationResult, extras: dict) -> Estimate:
         """From a RegistrationResult; its diagnostics are recorded in ``extras``."""
         extras.update(
             iterations=res.iterations,
             fitness=res.fitness,
             converged=res.converged,
+            stop_reason=res.stop_reason,
             inliers=res.num_inliers,
+            inlier_ratio=res.inlier_ratio,
         )
         return cls(
             res.T_target_source,
             H=res.H,
             residual_variance=res.cost / max(res.dof, 1),
             extras=extras,
+            result=res,
         )
-
-
-def rotation_angle_deg(T: np.ndarray) -> float:
-    cos = (np.trace(T[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 class ScanToMapFrontend:
@@ -99,9 +124,21 @@ class ScanToMapFrontend:
         self.twist = np.zeros(6)  # filtered (omega, v) per frame, for deskew
         self.n_frames = 0
         self.n_keyframes = 0
+        # tracking: running normal of trusted registrations, the last trusted pose
+        self.normal = RunningNormal(common.plausibility.window)
+        self.lost_frames = 0  # consecutive frames without a trusted registration
+        self.T_trusted = np.eye(4)
+        self.trusted_stamp: float | None = None
+        self.trusted_frames_ago = 0
 
     # ------------------------------------------------------------------ to implement
-    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
+        """Register ``scan`` against the map from ``T_pred`` without changing the map; ``wide``:
+        tracking is lost, search wider (coarse-to-fine from the prediction)."""
+        raise NotImplementedError
+
+    def _insert(self, est: Estimate, timings: dict) -> None:
+        """Add the trusted scan (``est.pending``) to the map at ``est.pose``."""
         raise NotImplementedError
 
     # ------------------------------------------------------------------ helpers
@@ -132,18 +169,59 @@ class ScanToMapFrontend:
         info = np.linalg.inv(cov)
         return 0.5 * (info + info.T)
 
+    # ------------------------------------------------------------------ tracking
+    def _judge(self, est: Estimate, stamp: float, T_pred: np.ndarray) -> str | None:
+        """Why the registration in ``est`` is not believable (None: trust it)."""
+        res = est.result
+        if res is None:  # nothing to register against yet: the map is being started
+            return None
+        est.information = information_from_hessian(
+            est.H, est.residual_variance, self._c.information
+        )
+        since = None
+        if self.trusted_stamp is not None and stamp > self.trusted_stamp:
+            since = float(stamp - self.trusted_stamp)
+        return implausibility(
+            res,
+            est.information.min_eigenvalue,
+            self.normal,
+            np.linalg.inv(self.T_trusted) @ est.pose,
+            np.linalg.inv(T_pred) @ est.pose,
+            since,
+            self._c.plausibility,
+        )
+
+    def _trust(self, est: Estimate, stamp: float, extras: dict) -> None:
+        """Book-keeping of a trusted registration: running normal, re-acquired motion."""
+        if est.result is not None:
+            self.normal.add(est.result, est.information.min_eigenvalue)
+        if self.lost_frames > 0 and self.trusted_stamp is not None:
+            # the motion model restarts from the mean motion over the lost stretch
+            n = self.lost_frames + 1
+            rho, phi = se3_log(np.linalg.inv(self.T_trusted) @ est.pose)
+            self.T_motion = se3_exp(np.concatenate([phi, rho]) / n)
+            self.twist = np.concatenate([phi, rho]) / n
+            extras["recovered"] = 1
+        self.lost_frames = 0
+        self.T_trusted = est.pose.copy()
+        self.trusted_stamp = float(stamp)
+
     # ------------------------------------------------------------------ main loop
     def process(self, scan: Scan) -> Odometry:
         """Estimate T_odom_sensor at ``scan.stamp`` (sweep start) and decide on a keyframe."""
         t0 = time.perf_counter()
         timings: dict[str, float] = {}
         T_pred = self.T_last @ self.T_motion if self._c.constant_velocity else self.T_last.copy()
-        extras: dict = {"n_points": int(len(scan))}
+        extras: dict = {"n_points": int(len(scan)), "rejected": 0, "recovered": 0}
         skipped = None
+        lost = None
         est = None
         filtered = None
         work = self._crop(scan)
         extras["n_after_crop"] = int(len(work))
+        if self.lost_frames >= self._c.max_lost_frames > 0 and len(self.normal):
+            self.normal.clear()  # lost too long: the scene changed, start a new normal
+            extras["reinitialised"] = 1
         if len(work) < self._c.min_points:
             skipped = f"too few points ({len(work)} < {self._c.min_points} after range crop)"
         else:
@@ -151,33 +229,51 @@ class ScanToMapFrontend:
             work = self._deskew(work)
             timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
             try:
-                est = self._estimate(work, T_pred, timings)
+                est = self._estimate(work, T_pred, timings, wide=self.lost_frames > 0)
                 extras.update(est.extras)
                 skipped = est.extras.get("skipped")
             except RegistrationError as exc:
                 log.warning("frame %d: registration failed (%s); using prediction", scan.index, exc)
-                skipped = f"registration failed: {exc}"
-                est = None
+                lost = f"registration failed: {exc}"
+                extras["rejected"] = 1
             filtered = extras.pop("_filtered_xyz", work.xyz)
+        if est is not None and skipped is None:
+            lost = self._judge(est, float(scan.stamp), T_pred)
+            if lost is not None:
+                extras["rejected"] = 1
+                log.info("frame %d: registration rejected (%s); using prediction", scan.index, lost)
+            else:
+                t = time.perf_counter()
+                self._insert(est, timings)
+                timings["map_ms"] = (time.perf_counter() - t) * 1e3
+                self._trust(est, float(scan.stamp), extras)
+        if skipped is not None or lost is not None:
+            est = None
+            if self.trusted_stamp is not None:  # tracking was established: now it is lost
+                self.lost_frames += 1
+                lost = lost or skipped
+        if lost is not None:
+            extras["lost"] = lost
+        extras["map_points"] = self._map_size()
 
         pose = est.pose if est is not None else T_pred
         first = self.n_keyframes == 0
-        if first and (skipped is not None and est is None):
+        if first and est is None:
             # nothing usable yet: stay at the origin, no keyframe
             pose = np.eye(4)
         relative = np.linalg.inv(self.T_kf) @ pose if not first else np.eye(4)
         if est is not None and est.H is not None:
-            inf = information_from_hessian(est.H, est.residual_variance, self._c.information)
+            inf = est.information or information_from_hessian(
+                est.H, est.residual_variance, self._c.information
+            )
             info_reg, degenerate = inf.info, inf.degenerate
             extras["min_info_eigenvalue"] = inf.min_eigenvalue
         else:
             info_reg, degenerate = default_information(self._c.information), est is None
-        is_kf = False
-        if est is not None and (first or is_new_keyframe(relative, self._c.keyframe)):
-            is_kf = True
+        is_kf = est is not None and (first or is_new_keyframe(relative, self._c.keyframe))
         info = self._keyframe_information(info_reg, relative)
         cloud = np.zeros((0, 3))
-        if filtered is not None and (is_kf or first):
+        if filtered is not None and is_kf:
             # only keyframes keep a cloud (the pipeline stores it; the first frame always
             # becomes one): no voxel pass over the scans in between
             t = time.perf_counter()
@@ -186,10 +282,11 @@ class ScanToMapFrontend:
         if is_kf:
             self.T_kf = pose.copy()
             self.n_keyframes += 1
-        # motion model: frame-to-frame motion and its duration
+        # motion model: frame-to-frame motion and its duration; a frame on the prediction
+        # (lost) keeps the motion model and the deskew twist as they were
         if self.last_stamp is not None and scan.stamp > self.last_stamp:
             self.motion_dt = float(scan.stamp - self.last_stamp)
-        if self.n_frames > 0 or est is not None:
+        if est is not None and extras["recovered"] == 0:
             self.T_motion = np.linalg.inv(self.T_last) @ pose
             rho, phi = se3_log(self.T_motion)
             a = self._c.deskew_smoothing if self.n_frames > 1 else 0.0
@@ -211,3 +308,7 @@ class ScanToMapFrontend:
             cloud=cloud,
             extras=extras,
         )
+
+    def _map_size(self) -> int:
+        """Points in the local map(s), for diagnostics."""
+        return 0

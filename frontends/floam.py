@@ -5,7 +5,7 @@ point-to-edge and point-to-plane scan-to-map matching against edge and plane loc
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -50,7 +50,7 @@ class Floam(ScanToMapFrontend):
         self.edge_map = VoxelHashMap(self.cfg.edge_map)
         self.plane_map = VoxelHashMap(self.cfg.plane_map)
 
-    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         cfg = self.cfg
         xyz = scan.xyz
         extras: dict = {"n_after_sor": int(len(xyz))}
@@ -71,14 +71,27 @@ class Floam(ScanToMapFrontend):
         if len(self.edge_map) + len(self.plane_map) >= 10:
             e_map = FeatureTarget(self.edge_map.points, self.edge_map.tree())
             p_map = FeatureTarget(self.plane_map.points, self.plane_map.tree())
-            res = feature_icp_align(edges, planes, e_map, p_map, T_pred, cfg.registration)
+            rc = cfg.registration
+            T0 = T_pred
+            if wide:  # tracking lost: coarse pass from the prediction with a wider search
+                f = cfg.recovery_correspondence_factor
+                coarse = replace(
+                    rc,
+                    max_neighbor_distance=rc.max_neighbor_distance * f,
+                    plane_threshold=rc.plane_threshold * f,
+                )
+                T0 = feature_icp_align(edges, planes, e_map, p_map, T_pred, coarse).T_target_source
+            res = feature_icp_align(edges, planes, e_map, p_map, T0, rc)
             est = Estimate.from_registration(res, extras)
+        est.pending = (edges, planes)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
+        return est
 
-        t = time.perf_counter()
+    def _map_size(self) -> int:
+        return len(self.edge_map) + len(self.plane_map)
+
+    def _insert(self, est: Estimate, timings: dict) -> None:
+        edges, planes = est.pending
         T = est.pose
         self.edge_map.add(edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
         self.plane_map.add(planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
-        extras["map_points"] = len(self.edge_map) + len(self.plane_map)
-        timings["map_ms"] = (time.perf_counter() - t) * 1e3
-        return est

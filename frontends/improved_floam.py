@@ -80,7 +80,7 @@ class ImprovedFloam(ScanToMapFrontend):
         # features are picked without kappa; the correction runs on the downsampled features
         self._features_no_kappa = replace(self.cfg.features, use_covariance_curvature=False)
 
-    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         cfg = self.cfg
         t = time.perf_counter()
         raw = scan.xyz
@@ -150,11 +150,23 @@ class ImprovedFloam(ScanToMapFrontend):
         if len(self.map) >= 10:
             target = GicpTarget(self.map.points, self.map.covs, self.map.tree())
             timings["map_tree_ms"] = (time.perf_counter() - t) * 1e3
-            res = gicp_align(src, target, T_pred, rc, source_covs=covs)
+            T0 = T_pred
+            if wide:  # tracking lost: coarse pass from the prediction with a wider search
+                d = rc.max_correspondence * cfg.recovery_correspondence_factor
+                coarse = replace(rc, max_correspondence=d)
+                T0 = gicp_align(src, target, T_pred, coarse, source_covs=covs).T_target_source
+            res = gicp_align(src, target, T0, rc, source_covs=covs)
             est = Estimate.from_registration(res, extras)
+        est.pending = (src, covs)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
+        return est
 
-        t = time.perf_counter()
+    def _map_size(self) -> int:
+        return len(self.map)
+
+    def _insert(self, est: Estimate, timings: dict) -> None:
+        cfg, rc = self.cfg, self.cfg.registration
+        src, covs = est.pending
         T = est.pose
         R = T[:3, :3]
         n_new = self.map.add(
@@ -180,6 +192,3 @@ class ImprovedFloam(ScanToMapFrontend):
                 line_ratio=rc.line_ratio,
                 threads=rc.threads,
             )
-        extras["map_points"] = len(self.map)
-        timings["map_ms"] = (time.perf_counter() - t) * 1e3
-        return est

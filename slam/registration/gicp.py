@@ -28,6 +28,8 @@ from slam.errors import ConfigError, SlamError
 log = logging.getLogger(__name__)
 
 COVARIANCE_MODES = ("raw", "plane", "shape")
+STOP_REASONS = ("step", "fitness", "stalled", "max_iterations")
+CONVERGED_REASONS = ("step", "fitness")
 
 
 class RegistrationError(SlamError):
@@ -82,6 +84,12 @@ class RegistrationResult:
     Mahalanobis / point-to-feature distances); fitness: mean squared Euclidean distance of
     inlier correspondences (m^2, PCL's fitness score); rmse = sqrt(fitness). dof: number of
     scalar residuals minus 6 (for the residual variance cost / dof).
+
+    stop_reason: why the solver stopped, one of ``STOP_REASONS``: "step" (update below
+    transformation_epsilon), "fitness" (relative cost change below fitness_epsilon),
+    "stalled" (no damped step lowered the cost although the Gauss-Newton step was not yet
+    small: a saddle, a bad association or numerical trouble) or "max_iterations".
+    converged is True only for "step" and "fitness".
     """
 
     T_target_source: np.ndarray
@@ -95,6 +103,12 @@ class RegistrationResult:
     iterations: int
     converged: bool
     dof: int = 0
+    stop_reason: str = "step"
+
+    @property
+    def inlier_ratio(self) -> float:
+        """Share of source points that found a correspondence (0-1)."""
+        return self.num_inliers / max(self.num_source, 1)
 
 
 # --------------------------------------------------------------------------- SE(3) helpers
@@ -303,10 +317,17 @@ def solve_weighted(
     T = np.asarray(init_T, dtype=np.float64).copy()
     mu = 1e-6
     prev_cost = None
-    converged = False
+    reason = "max_iterations"
     H = np.zeros((6, 6))
     b = np.zeros(6)
     cost, n_in, sqd, iterations = 0.0, 0, np.zeros(0), 0
+
+    def small(xi: np.ndarray) -> bool:
+        return (
+            float(xi[:3] @ xi[:3]) < transformation_epsilon
+            and float(xi[3:] @ xi[3:]) < transformation_epsilon
+        )
+
     for it in range(1, max_iterations + 1):
         iterations = it
         p, q, W, w, sqd = associate(T)
@@ -318,10 +339,11 @@ def solve_weighted(
             )
         H, b, cost = _linearise(T, p, q, W, w)
         if prev_cost is not None and abs(prev_cost - cost) <= fitness_epsilon * max(cost, 1e-12):
-            converged = True
+            reason = "fitness"
             break
         prev_cost = cost
         accepted = False
+        first_step = None
         for _ in range(8):
             A = H + mu * np.diag(np.maximum(np.diag(H), 1e-12))
             try:
@@ -329,6 +351,8 @@ def solve_weighted(
             except np.linalg.LinAlgError:
                 mu *= 10.0
                 continue
+            if first_step is None:
+                first_step = xi
             T_new = T @ se3_exp(xi)
             if _cost(T_new, p, q, W, w) <= cost:
                 T = T_new
@@ -337,13 +361,12 @@ def solve_weighted(
                 break
             mu *= 10.0
         if not accepted:
-            converged = True  # no descent direction left: at a (local) minimum
+            # no damped step lowers the cost: at the minimum when even the least damped step
+            # was already below the epsilon (rounding), else stuck short of it
+            reason = "step" if first_step is not None and small(first_step) else "stalled"
             break
-        if (
-            float(xi[:3] @ xi[:3]) < transformation_epsilon
-            and float(xi[3:] @ xi[3:]) < transformation_epsilon
-        ):
-            converged = True
+        if small(xi):
+            reason = "step"
             break
     fitness = float(sqd.mean()) if len(sqd) else float("inf")
     return RegistrationResult(
@@ -356,8 +379,9 @@ def solve_weighted(
         num_inliers=n_in,
         num_source=num_source,
         iterations=iterations,
-        converged=converged,
+        converged=reason in CONVERGED_REASONS,
         dof=max(residual_dims * n_in - 6, 1),
+        stop_reason=reason,
     )
 
 

@@ -1,0 +1,173 @@
+"""Is a scan-to-map registration believable? Tests relative to the run's own normal.
+
+A registration that ends on its iteration cap, or whose fitness (RMSE of inlier
+distances) is many times the recent median, or which found a correspondence for far fewer
+source points than usual, or which moves the sensor faster than a vehicle can or far from
+the constant-velocity prediction, is not a measurement of the motion: the sensor is blinded
+(a bush, a truck beside it), the view changed or the solver slid into a wrong minimum.
+Such a result must feed neither the map nor the motion model.
+
+Fitness and inlier share depend on the scene (sensor noise, foliage, map density), so they
+are judged against running medians of the accepted registrations, never against absolute
+numbers tuned to one scene. Motion is judged against physics: speed and turn rate bounds
+(m/s, deg/s) and how far a bounded acceleration can take the sensor from the
+constant-velocity prediction over the time since the last trusted registration.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.errors import ConfigError
+from slam.registration.gicp import RegistrationResult
+
+
+@dataclass
+class PlausibilityConfig:
+    """Gate of a registration (relative tests need ``warmup`` trusted frames first).
+
+    window: trusted frames in the running medians. max_fitness_ratio: an RMSE above this
+    many times the median RMSE is implausible. min_inlier_ratio: an inlier share below this
+    fraction of the median share is implausible; min_support_ratio: likewise for the number
+    of correspondences (a blinded sensor registers a hundred close points where the scene
+    gave thousands); min_information_ratio: likewise for the smallest eigenvalue of the
+    normalised information (``information.information_from_hessian``; clean simulated
+    drives stay above 0.026 x median, the corridor's weak axis being the lowest).
+    max_speed (m/s) / max_turn_rate_deg (deg/s): physical bounds of the motion.
+    max_acceleration (m/s^2) / max_angular_acceleration_deg (deg/s^2): how far the pose may
+    leave the constant-velocity prediction, 0.5 a T^2 over the time T since the last
+    trusted pose, plus prediction_floor (m) / prediction_floor_deg (noise of the estimates).
+    unconverged_fitness_ratio: a registration that stopped on its iteration cap or stalled
+    (flagged not converged) is believed only when its RMSE is within this factor of the
+    median, i.e. it crept along a weakly constrained direction but fits as well as usual;
+    before there is a normal it is not believed.
+    """
+
+    enabled: bool = True
+    window: int = 50
+    warmup: int = 5
+    max_fitness_ratio: float = 3.0
+    min_inlier_ratio: float = 0.5
+    min_support_ratio: float = 0.2
+    min_information_ratio: float = 1e-3
+    max_speed: float = 40.0
+    max_turn_rate_deg: float = 180.0
+    max_acceleration: float = 20.0
+    max_angular_acceleration_deg: float = 720.0
+    prediction_floor: float = 0.3
+    prediction_floor_deg: float = 3.0
+    unconverged_fitness_ratio: float = 1.5
+
+    def __post_init__(self) -> None:
+        if self.window < 1 or self.warmup < 0:
+            raise ConfigError("plausibility window must be >= 1 and warmup >= 0")
+        ratios = (self.min_inlier_ratio, self.min_support_ratio, self.min_information_ratio)
+        if self.max_fitness_ratio <= 1.0 or not all(0.0 <= r < 1.0 for r in ratios):
+            raise ConfigError(
+                "plausibility needs max_fitness_ratio > 1 and min_inlier_ratio,"
+                " min_support_ratio, min_information_ratio in [0, 1)"
+            )
+        if min(self.max_speed, self.max_turn_rate_deg) <= 0:
+            raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
+
+
+def motion_magnitude(T: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation angle (deg) of a 4x4 relative pose."""
+    cos = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+
+
+class RunningNormal:
+    """Running medians over the last trusted registrations: RMSE (m), inlier share, number of
+    correspondences and the smallest eigenvalue of the normalised information."""
+
+    _FIELDS = ("rmse", "inlier_ratio", "num_inliers", "information")
+
+    def __init__(self, window: int):
+        self._values = {k: deque(maxlen=window) for k in self._FIELDS}
+
+    def __len__(self) -> int:
+        return len(self._values["rmse"])
+
+    def add(self, res: RegistrationResult, information: float) -> None:
+        """Record a trusted registration and its information's smallest eigenvalue."""
+        if np.isfinite(res.rmse) and np.isfinite(information):
+            values = (res.rmse, res.inlier_ratio, res.num_inliers, information)
+            for k, v in zip(self._FIELDS, values, strict=True):
+                self._values[k].append(float(v))
+
+    def clear(self) -> None:
+        for v in self._values.values():
+            v.clear()
+
+    def median(self, name: str) -> float:
+        """Running median of one of ``rmse``, ``inlier_ratio``, ``num_inliers``,
+        ``information`` (nan while empty)."""
+        v = self._values[name]
+        return float(np.median(v)) if v else float("nan")
+
+
+def implausibility(
+    res: RegistrationResult,
+    information: float,
+    normal: RunningNormal,
+    T_trusted_current: np.ndarray,
+    T_pred_current: np.ndarray,
+    elapsed: float | None,
+    cfg: PlausibilityConfig,
+) -> str | None:
+    """Why ``res`` is not believable, or None when it is.
+
+    information: smallest eigenvalue of the result's normalised information.
+    T_trusted_current: the registered pose relative to the last trusted pose (the previous
+    frame while tracking); T_pred_current: relative to the constant-velocity prediction;
+    elapsed (s): time since the last trusted pose (the prediction drifts with it). Without
+    a time the motion tests are skipped.
+    """
+    if not cfg.enabled:
+        return None
+    have_normal = len(normal) >= max(cfg.warmup, 1)
+    rmse = normal.median("rmse")
+    if not res.converged and (not have_normal or res.rmse > cfg.unconverged_fitness_ratio * rmse):
+        return (
+            f"registration {res.stop_reason} after {res.iterations} iterations,"
+            f" fitness {res.rmse:.3f} m"
+        )
+    if have_normal:
+        if res.rmse > cfg.max_fitness_ratio * rmse:
+            return f"fitness {res.rmse:.3f} m > {cfg.max_fitness_ratio:g} x median {rmse:.3f} m"
+        share = normal.median("inlier_ratio")
+        if res.inlier_ratio < cfg.min_inlier_ratio * share:
+            return (
+                f"inlier share {res.inlier_ratio:.2f} < {cfg.min_inlier_ratio:g} x median"
+                f" {share:.2f}"
+            )
+        count = normal.median("num_inliers")
+        if res.num_inliers < cfg.min_support_ratio * count:
+            return (
+                f"{res.num_inliers} correspondences < {cfg.min_support_ratio:g} x median"
+                f" {count:.0f}"
+            )
+        info = normal.median("information")
+        if information < cfg.min_information_ratio * info:
+            return (
+                f"information {information:.2g} < {cfg.min_information_ratio:g} x median {info:.2g}"
+            )
+    if elapsed is None or not elapsed > 0:
+        return None
+    t, r = motion_magnitude(T_trusted_current)
+    if t > cfg.max_speed * elapsed:
+        return f"speed {t / elapsed:.1f} m/s > {cfg.max_speed:g} m/s"
+    if r > cfg.max_turn_rate_deg * elapsed:
+        return f"turn rate {r / elapsed:.0f} deg/s > {cfg.max_turn_rate_deg:g} deg/s"
+    t, r = motion_magnitude(T_pred_current)
+    lim_t = cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
+    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
+    if t > lim_t:
+        return f"{t:.2f} m from the constant-velocity prediction (> {lim_t:.2f} m)"
+    if r > lim_r:
+        return f"{r:.1f} deg from the constant-velocity prediction (> {lim_r:.1f} deg)"
+    return None
