@@ -6,15 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from slam.errors import InputError
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(M, 3) -> (M, 3, 3) cross-product matrices."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+from slam.registration.gicp import skew
 
 
 def _left_jacobian(phi: np.ndarray) -> np.ndarray:
@@ -24,7 +16,7 @@ def _left_jacobian(phi: np.ndarray) -> np.ndarray:
     th = np.where(small, 1.0, theta)
     a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
     b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
-    K = _skew(phi)
+    K = skew(phi)
     return np.eye(3) + a * K + b * (K @ K)
 
 

@@ -14,7 +14,6 @@ from slam.registration.information import (
     Information,
     InformationConfig,
     information_from_hessian,
-    registration_information,
 )
 
 __all__ = [
@@ -30,6 +29,5 @@ __all__ = [
     "feature_icp_align",
     "gicp_align",
     "information_from_hessian",
-    "registration_information",
     "se3_exp",
 ]

@@ -1,5 +1,9 @@
 """From a registration Hessian to a plausible information matrix, and a degeneracy test.
 
+The one Hessian-to-information conversion of the project: the front ends use it with the
+residual variance (absolute scale), loop verification with ``relative=True`` (the best
+direction is put at its floor sigma, the Hessian's shape kept).
+
 A scan-to-map Gauss-Newton Hessian H = sum J^T W J counts thousands of correlated residuals
 as independent, so H / s^2 (s^2 = residual variance) claims sub-millimetre sigmas. Factor
 graphs need a covariance that reflects the real drift of odometry: we scale by the residual
@@ -17,8 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from slam.registration.gicp import RegistrationResult
 
 
 @dataclass
@@ -58,6 +60,8 @@ def information_from_hessian(
     H: np.ndarray,
     residual_variance: float = 1.0,
     cfg: InformationConfig | None = None,
+    *,
+    relative: bool = False,
 ) -> Information:
     """Information = H / residual_variance with its eigenvalues clamped to plausible sigmas.
 
@@ -66,6 +70,11 @@ def information_from_hessian(
     estimate is H / s^2. The normalised information N = D I D (D = diag(best-case sigmas)) has
     eigenvalue 1 where a direction is known to its floor; eigenvalues are clipped to
     [(floor/ceiling)^2, 1] and mapped back, so the result is symmetric positive definite.
+    relative: first divide N by its largest eigenvalue, so that the best-determined
+    direction has exactly its floor sigma whatever the Hessian's scale (raw GICP Hessians of
+    thousands of millimetre-thin covariances are 1e6-1e9); ``min_eigenvalue`` and the
+    degeneracy flag are then relative to the best direction as well.
+    A non-finite or mis-shaped H gives the weakest information (every sigma at its ceiling).
     """
     cfg = cfg or InformationConfig()
     H = np.asarray(H, dtype=np.float64)
@@ -75,6 +84,9 @@ def information_from_hessian(
     lo, hi = _floors(cfg)
     N = lo[:, None] * info * lo[None, :]
     w, V = np.linalg.eigh(N)
+    if relative:
+        top = float(w[-1])
+        w = w / top if top > 0 else np.zeros(6)
     min_eig = float(w[0])
     lower = float(np.max((lo / hi) ** 2))
     w_c = np.clip(w, lower, 1.0)
@@ -86,14 +98,6 @@ def information_from_hessian(
         min_eigenvalue=min_eig,
         weak_direction=V[:, 0].copy(),
     )
-
-
-def registration_information(
-    result: RegistrationResult, cfg: InformationConfig | None = None
-) -> Information:
-    """``information_from_hessian`` of a RegistrationResult, s^2 = cost / dof."""
-    s2 = result.cost / max(result.dof, 1)
-    return information_from_hessian(result.H, s2, cfg)
 
 
 def default_information(cfg: InformationConfig | None = None, factor: float = 10.0) -> np.ndarray:
