@@ -45,6 +45,8 @@ def test_frontend_on_simulated_corridor(corridor, name, max_err):
         assert np.all(sig[3:] > 0.009) and np.all(sig[3:] < 0.5)  # plausible, not 1e-9
         assert 100 < len(o.cloud) < len(scans[0])
     assert all("skipped" not in o.extras for o in outs)
+    assert not [o.extras["lost"] for o in outs if "lost" in o.extras]  # no false "lost"
+    assert all(o.extras["converged"] for o in outs[1:])
     assert all(o.extras["n_edges"] > 20 and o.extras["n_planes"] > 50 for o in outs)
 
 
@@ -52,7 +54,8 @@ PARK_FRAMES = 120
 
 
 def _drive(name: str, sim) -> tuple[np.ndarray, float]:
-    """Position error (m) of every frame (origin-aligned) and the distance driven (m)."""
+    """Position error (m) of every frame (origin-aligned) and the distance driven (m); a
+    normal drive has no frame flagged lost (registration judged implausible)."""
     gt_stamps, gt = sim.read_ground_truth()
     fe = instantiate("slam.frontends", load_config(name).frontend, "frontend")
     outs = [fe.process(s) for s in open_source(sim.bag)]
@@ -60,6 +63,8 @@ def _drive(name: str, sim) -> tuple[np.ndarray, float]:
     G = np.linalg.inv(gt[idx[0]]) @ gt[idx]
     P = np.array([o.pose for o in outs])
     dist = float(np.sum(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1)))
+    assert not [(i, o.extras["lost"]) for i, o in enumerate(outs) if "lost" in o.extras]
+    assert sum(o.extras["rejected"] for o in outs) == 0
     return np.linalg.norm(P[:, :3, 3] - G[:, :3, 3], axis=1), dist
 
 
