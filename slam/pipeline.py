@@ -151,12 +151,15 @@ class Pipeline:
         else the point layout / elevation histogram (slam.sensor). Logged once."""
         from slam.sensor import beams_from_rings, estimate_beams
 
+        scans = [s for s in scans if len(s) >= 100]  # empty / nearly empty scans tell nothing
         try:
+            if not scans:
+                raise InputError("no scan with points among the first ones")
             if all(s.ring is not None for s in scans):
                 self.beams = beams_from_rings([s.xyz for s in scans], [s.ring for s in scans])
             else:
                 self.beams = estimate_beams([s.xyz for s in scans])
-        except InputError as exc:  # e.g. a 2D laser: no beams to find, the features cope
+        except (InputError, ValueError, IndexError) as exc:  # e.g. a 2D laser: no beams
             log.info("no beam model: %s", exc)
             self.beams = False
             return

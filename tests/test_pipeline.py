@@ -144,3 +144,10 @@ def test_scans_without_ring_get_rings_from_the_estimated_beam_table():
         np.testing.assert_array_equal(ring, truth)  # ring 0 = the lowest beam
     assert p.beams.n_beams == 16
     assert p.state.sensor.startswith("inferred 16 beams, +15.0..-15.0 deg")
+
+
+def test_empty_first_scans_leave_no_beam_model_and_the_run_goes_on():
+    fe = RingRecorder(np.stack([np.eye(4)] * 4))
+    p = Pipeline(SlamConfig(), frontend=fe, factor_sources=[])
+    p.run([Scan(stamp=float(i), xyz=np.zeros((0, 3)), index=i) for i in range(4)])
+    assert p.state.frames == 4 and p.beams is False and p.state.sensor is None
