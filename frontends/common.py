@@ -55,9 +55,9 @@ class CommonConfig:
     plausibility: the gate of each registration (see ``slam.registration.plausibility``).
     recovery_correspondence_factor: while tracking is lost, a coarse registration with this
     many times the correspondence distance runs from the prediction before the normal one.
-    max_lost_frames: after this many consecutive lost frames the running normal is
-    forgotten and the next converged, physically possible registration is trusted (the
-    scene changed for good: re-initialisation, ``extras["reinitialised"]`` = 1).
+    max_lost_seconds: after tracking has been lost this long (s) the running normal is
+    forgotten and the next converged, physically possible registrations are trusted (the
+    scene changed for good: re-initialisation, ``extras["reinitialised"]`` = 1); 0 = never.
     """
 
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -73,7 +73,7 @@ class CommonConfig:
     drift_rotation_deg_per_m: float = 0.1
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)
     recovery_correspondence_factor: float = 3.0
-    max_lost_frames: int = 50
+    max_lost_seconds: float = 5.0
 
 
 @dataclass
@@ -219,7 +219,8 @@ class ScanToMapFrontend:
         filtered = None
         work = self._crop(scan)
         extras["n_after_crop"] = int(len(work))
-        if self.lost_frames >= self._c.max_lost_frames > 0 and len(self.normal):
+        lost_for = 0.0 if self.trusted_stamp is None else float(scan.stamp) - self.trusted_stamp
+        if self.lost_frames and lost_for >= self._c.max_lost_seconds > 0 and len(self.normal):
             self.normal.clear()  # lost too long: the scene changed, start a new normal
             extras["reinitialised"] = 1
         if len(work) < self._c.min_points:

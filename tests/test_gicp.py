@@ -4,18 +4,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from slam.preprocess.voxel import voxel_downsample
 from slam.registration.gicp import (
     GicpConfig,
     GicpTarget,
     RegistrationError,
+    _linearise,
     estimate_covariances,
     gicp_align,
     se3_exp,
+    solve_weighted,
     transform,
 )
-from slam.registration.information import information_from_hessian
+from slam.registration.information import InformationConfig, information_from_hessian
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "scan_pair"
 
@@ -100,18 +104,137 @@ def test_gicp_needs_overlap():
         gicp_align(target + 100.0, target, np.eye(4))
 
 
-def test_hessian_ordering_is_rotation_first():
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_hessian_ordering_is_rotation_first(seed):
+    """H = J^T W J with J = d e / d xi for T <- T exp(xi), xi = (rotation, translation):
+    checked against finite differences of the residuals for random poses, points and
+    positive-definite weights, so the ordering holds for any problem, not one scene."""
+    rng = np.random.default_rng(seed)
+    n = 7
+    T = se3_exp(rng.normal(0, [0.5] * 3 + [3.0] * 3))
+    p = rng.normal(0, 5.0, (n, 3))
+    q = rng.normal(0, 5.0, (n, 3))
+    A = rng.normal(size=(n, 3, 3))
+    W = A @ np.transpose(A, (0, 2, 1)) + 0.1 * np.eye(3)
+    H, b, cost = _linearise(T, p, q, W, None)
+
+    def residuals(xi):
+        return transform(T @ se3_exp(xi), p) - q
+
+    h = 1e-6
+    J = np.stack(
+        [(residuals(h * e) - residuals(-h * e)) / (2 * h) for e in np.eye(6)], axis=-1
+    )  # (n, 3, 6)
+    H_num = np.einsum("nri,nrs,nsj->ij", J, W, J)
+    assert np.allclose(H, H_num, rtol=1e-5, atol=1e-6 * np.abs(H).max())
+    assert np.allclose(b, np.einsum("nri,nrs,ns->i", J, W, residuals(np.zeros(6))), atol=1e-5)
+    assert np.isclose(
+        cost, np.einsum("nr,nrs,ns->", residuals(np.zeros(6)), W, residuals(np.zeros(6)))
+    )
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.lists(st.floats(-6.0, 12.0), min_size=6, max_size=6),
+    st.floats(1e-6, 1e2),
+)
+def test_information_of_any_positive_definite_hessian(seed, log_scales, variance):
+    """For ANY positive-definite H: a symmetric positive-definite information whose sigmas
+    respect the floors and ceilings of their block, rotation first (rad), then translation
+    (m); exactly H / s^2 when that is already plausible; the rotation block of a
+    block-diagonal H depends on the rotation block only."""
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    H = (Q * np.exp(log_scales)) @ Q.T
+    cfg = InformationConfig()
+    lo = np.array([np.radians(cfg.min_sigma_rotation_deg)] * 3 + [cfg.min_sigma_translation] * 3)
+    hi = np.array([np.radians(cfg.max_sigma_rotation_deg)] * 3 + [cfg.max_sigma_translation] * 3)
+    inf = information_from_hessian(H, variance, cfg)
+    assert np.allclose(inf.info, inf.info.T)
+    assert np.all(np.linalg.eigvalsh(inf.info) > 0)
+    sig = np.sqrt(np.diag(np.linalg.inv(inf.info)))
+    assert np.all(sig >= lo * (1 - 1e-6)), sig / lo
+    assert np.all(sig <= hi * (1 + 1e-6)), sig / hi
+    N = lo[:, None] * (H / variance) * lo[None, :]
+    w = np.linalg.eigvalsh(N)
+    assert np.isclose(inf.min_eigenvalue, w[0], rtol=1e-6, atol=1e-12)
+    if w[0] >= np.max((lo / hi) ** 2) and w[-1] <= 1.0:  # nothing to clamp
+        assert np.allclose(inf.info, H / variance, rtol=1e-6)
+    # block-diagonal: changing the translation block leaves the rotation block alone
+    B = H.copy()
+    B[:3, 3:] = B[3:, :3] = 0.0
+    B2 = B.copy()
+    B2[3:, 3:] *= 1e4
+    i1 = information_from_hessian(B, variance, cfg).info
+    i2 = information_from_hessian(B2, variance, cfg).info
+    assert np.allclose(i1[:3, :3], i2[:3, :3], rtol=1e-6, atol=1e-9 * np.abs(i1[:3, :3]).max())
+    assert np.allclose(i1[:3, 3:], 0.0, atol=1e-9 * np.abs(i1).max())
+
+
+def test_information_relative_puts_the_best_direction_at_its_floor():
+    """relative=True (loop verification): scale-free, the best direction at its floor sigma."""
+    rng = np.random.default_rng(4)
+    Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    H = (Q * np.exp(rng.uniform(10, 20, 6))) @ Q.T  # raw GICP scale
+    cfg = InformationConfig()
+    a = information_from_hessian(H, 1.0, cfg, relative=True)
+    b = information_from_hessian(1e3 * H, 1.0, cfg, relative=True)
+    assert np.allclose(a.info, b.info, rtol=1e-9)
+    lo = np.array([np.radians(cfg.min_sigma_rotation_deg)] * 3 + [cfg.min_sigma_translation] * 3)
+    w = np.linalg.eigvalsh(lo[:, None] * a.info * lo[None, :])
+    assert np.isclose(w[-1], 1.0) and a.min_eigenvalue <= 1.0
+    absolute = information_from_hessian(H, 1.0, cfg)  # clamps every direction above the floor
+    w_abs = np.linalg.eigvalsh(lo[:, None] * absolute.info * lo[None, :])
+    assert np.sum(np.isclose(w_abs, 1.0)) > np.sum(np.isclose(w, 1.0)) == 1
+
+
+def test_gicp_information_is_plausible_on_a_room():
     rng = np.random.default_rng(3)
     target = room_scan(rng, 3000)
     res = gicp_align(target, GicpTarget.from_points(target), np.eye(4))
-    # a pure x-translation perturbation must show in the translation block (index 3)
-    xi = np.zeros(6)
-    xi[3] = 1.0
-    assert xi @ res.H @ xi > 0
     info = information_from_hessian(res.H, res.cost / res.dof)
     sig = np.sqrt(np.diag(np.linalg.inv(info.info)))
     assert np.all(sig[3:] >= 0.0099) and np.all(sig[:3] >= np.radians(0.0499))
     assert not info.degenerate
+
+
+def test_iteration_cap_is_not_convergence():
+    """A solve stopped by max_iterations is reported as such, never as converged."""
+    rng = np.random.default_rng(5)
+    target = room_scan(rng)
+    T_true = se3_exp(np.array([0.05, -0.04, 0.15, 0.5, -0.3, 0.1]))
+    source = transform(np.linalg.inv(T_true), room_scan(rng))
+    capped = gicp_align(source, target, np.eye(4), GicpConfig(max_iterations=2))
+    assert capped.iterations == 2
+    assert not capped.converged and capped.stop_reason == "max_iterations"
+    full = gicp_align(source, target, np.eye(4), GicpConfig(max_iterations=50))
+    assert full.converged and full.stop_reason in ("step", "fitness")
+    assert full.iterations < 50
+
+
+def test_stalled_solve_is_not_convergence():
+    """When no damped step lowers the cost while the Gauss-Newton step is still large (here
+    an association whose weights have no minimum), the solver says "stalled", not converged."""
+    rng = np.random.default_rng(6)
+    p = rng.normal(0, 3.0, (50, 3))
+    q = p + [0.5, 0.0, 0.0]
+    W = np.broadcast_to(-np.eye(3), (50, 3, 3))  # a broken weighting: cost unbounded below
+
+    def associate(T):
+        return p, q, W, None, np.sum((transform(T, p) - q) ** 2, axis=1)
+
+    res = solve_weighted(
+        np.eye(4),
+        associate,
+        len(p),
+        max_iterations=30,
+        transformation_epsilon=1e-6,
+        fitness_epsilon=1e-6,
+    )
+    assert res.stop_reason == "stalled" and not res.converged
+    assert res.iterations == 1
 
 
 @pytest.mark.skipif(not (DATA / "source.ply").is_file(), reason="shared scan pair absent")
