@@ -118,10 +118,11 @@ def test_kitti_consecutive_scans_agree_with_small_gicp(kitti):
     )
     travel = np.linalg.norm((np.linalg.inv(poses[0]) @ poses[-1])[:3, 3])
     assert travel > 4.0  # the car really moves (~0.8 m per scan)
-    # measured: 0.3-2.9 cm (mean 0.8) and <= 0.06 deg per frame; small_gicp itself moves
-    # by up to 0.5 cm between 0.25 m and 0.1 m downsampling
+    # measured: 0.3-2.9 cm (mean 0.8) and <= 0.06 deg per frame (3.4 cm with source
+    # covariances from the features); small_gicp itself moves by up to 0.5 cm between 0.25 m
+    # and 0.1 m downsampling, and the map judges our poses the better ones (below)
     assert err[:, 0].mean() < 0.012, err[:, 0]
-    assert err[:, 0].max() < 0.035, err[:, 0]
+    assert err[:, 0].max() < 0.04, err[:, 0]
     assert err[:, 1].max() < 0.1, err[:, 1]
     chained = [np.eye(4)]
     for r in ref:
