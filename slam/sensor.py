@@ -252,15 +252,23 @@ def beams_from_rings(scans: list[np.ndarray], rings: list[np.ndarray]) -> BeamMo
 
     Rings are renumbered by elevation only in the model; a ring absent from the data gets
     no entry (``n_beams`` counts the rings seen)."""
-    scans = [np.asarray(s, dtype=np.float64) for s in scans]
-    elev = np.concatenate([elevation_deg(s) for s in scans])
-    ring = np.concatenate([np.asarray(r, dtype=np.int64) for r in rings])
-    if len(ring) != len(elev):
-        raise InputError("rings must have one entry per point")
-    ok = ring >= 0
-    ids = np.unique(ring[ok])
-    med = np.array([np.median(elev[ok][ring[ok] == i]) for i in ids])
-    max_range = float(np.percentile(_ranges(scans), 99))
+    scans = [np.asarray(s, dtype=np.float64).reshape(-1, 3) for s in scans]
+    rings = [np.asarray(r, dtype=np.int64).ravel() for r in rings]
+    if (
+        not scans
+        or len(rings) != len(scans)
+        or any(map(lambda s, r: len(s) != len(r), scans, rings))
+    ):
+        raise InputError("beams_from_rings needs scans and one ring per point of each")
+    xyz, ring = np.concatenate(scans), np.concatenate(rings)
+    fine = np.isfinite(xyz).all(axis=1) & (ring >= 0)
+    if fine.sum() < 10:
+        raise InputError("need at least one scan with points to read the beam model")
+    xyz, ring = xyz[fine], ring[fine]
+    elev = elevation_deg(xyz)
+    ids, dense = np.unique(ring, return_inverse=True)
+    med = _group_medians(elev, dense.ravel(), len(ids))
+    max_range = float(np.percentile(np.linalg.norm(xyz, axis=1), 99))
     return BeamModel(np.sort(med), layout=False, max_range=max_range, source="ring field")
 
 

@@ -123,3 +123,13 @@ def test_layout_seam_when_the_first_beam_begins_late() -> None:
     assert model.layout and model.n_beams == 128
     assert abs((np.degrees(model.seam_rad) + 180.0) % 360.0 - 180.0) < 1.0
     assert np.array_equal(model.ring_of(xyz[keep]), ring[keep])
+
+
+def test_beams_from_rings_bad_input() -> None:
+    with pytest.raises(InputError):
+        beams_from_rings([np.zeros((0, 3))], [np.zeros(0)])
+    with pytest.raises(InputError):
+        beams_from_rings([np.ones((20, 3))], [np.zeros(19)])
+    xyz, ring = spin(SENSORS["VLP-16"], 300, "firing")
+    xyz[:10] = np.nan  # invalid returns are ignored
+    assert beams_from_rings([xyz], [ring]).n_beams == 16
