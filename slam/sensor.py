@@ -257,7 +257,7 @@ def beams_from_rings(scans: list[np.ndarray], rings: list[np.ndarray]) -> BeamMo
     if (
         not scans
         or len(rings) != len(scans)
-        or any(map(lambda s, r: len(s) != len(r), scans, rings))
+        or any(len(s) != len(r) for s, r in zip(scans, rings, strict=True))
     ):
         raise InputError("beams_from_rings needs scans and one ring per point of each")
     xyz, ring = np.concatenate(scans), np.concatenate(rings)
