@@ -8,8 +8,10 @@ the map). Between the two the frame loop judges the registration
 (``slam.registration.plausibility``): an implausible one is replaced by the
 constant-velocity prediction, is not inserted into the map, does not update the motion
 model or the deskew twist, and the frame is flagged (``extras["lost"]`` = the reason,
-``extras["rejected"]`` = 1). While tracking is lost the next scans are registered with a
-wider search (coarse pass with ``recovery_correspondence_factor`` times the correspondence
+``extras["rejected"]`` = 1; ``extras["tracking_lost"]`` = 1 also for frames skipped while
+tracking, e.g. too few points; the counters are 0/1 on every frame, as is
+``extras["recovered"]``). While tracking is lost the next scans are registered with a wider
+search (coarse pass with ``recovery_correspondence_factor`` times the correspondence
 distance from the prediction, then the normal pass), and the first plausible result
 re-acquires the map (``extras["recovered"]`` = 1).
 """
@@ -212,7 +214,9 @@ class ScanToMapFrontend:
         t0 = time.perf_counter()
         timings: dict[str, float] = {}
         T_pred = self.T_last @ self.T_motion if self._c.constant_velocity else self.T_last.copy()
+        # 0/1 counters on every frame: summed (or averaged) over a run by the pipeline
         extras: dict = {"n_points": int(len(scan)), "rejected": 0, "recovered": 0}
+        extras["reinitialised"] = 0
         skipped = None
         lost = None
         est = None
@@ -255,6 +259,7 @@ class ScanToMapFrontend:
                 lost = lost or skipped
         if lost is not None:
             extras["lost"] = lost
+        extras["tracking_lost"] = int(lost is not None)
         extras["map_points"] = self._map_size()
 
         pose = est.pose if est is not None else T_pred

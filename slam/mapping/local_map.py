@@ -2,8 +2,8 @@
 
 Like KISS-ICP's VoxelHashMap: points (in the odometry frame) are binned into voxels of
 ``voxel_size`` metres; a voxel accepts new points until it holds ``max_points_per_voxel``;
-points farther than ``radius`` from the sensor are not inserted, and those the sensor has
-left behind are dropped every ``prune_distance`` of travel. Optional
+points farther than ``radius`` from the sensor are dropped every ``prune_distance`` of
+travel. Optional
 per-point covariances (3x3, odometry frame) travel with the points, so a GICP target needs
 no re-estimation. Everything is vectorised over the inserted batch: no per-point loops and no
 full rebuild of the map per frame (only its KD-tree, lazily, when the map changed).
@@ -27,8 +27,11 @@ class LocalMapConfig:
 
     prune_distance (m): points beyond ``radius`` are dropped once the sensor has moved this
     far since the last pruning (a pass over the whole map; every frame would cost ~8 ms on
-    a 140k-point outdoor map). New points beyond ``radius`` from the sensor are not
-    inserted, so no map point is ever farther than ``radius + prune_distance`` from it."""
+    a 140k-point outdoor map). Right after a pruning no point is farther than ``radius``
+    from the sensor except those the current scan adds; points that were within ``radius``
+    at the last pruning stay within ``radius + prune_distance``; the scans since the last
+    pruning reach as far as the sensor does (cropping them at ``radius`` on insertion cost
+    the park 22 % APE: 2.8 -> 3.4 cm over 300 frames)."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20
@@ -86,11 +89,10 @@ class VoxelHashMap:
     ) -> int:
         """Insert odometry-frame points (and covariances); returns how many were kept.
 
-        If ``origin`` (sensor position) is given, new points beyond ``radius`` from it are
-        left out, and if it moved ``prune_distance`` since the last pruning, map points beyond
-        ``radius`` from it are removed. Then a voxel with c points accepts the first (cap - c)
-        new points falling in it; the accepted points are appended, so they are the last
-        ``added`` rows.
+        If ``origin`` (sensor position) is given and it moved ``prune_distance`` since the last
+        pruning, map points beyond ``radius`` from it are removed first. Then a voxel with c
+        points accepts the first (cap - c) new points falling in it; the accepted points are
+        appended, so they are the last ``added`` rows.
         """
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -104,10 +106,6 @@ class VoxelHashMap:
             if moved >= self.cfg.prune_distance:
                 self.remove_far(origin)
                 self._pruned_at = origin.copy()
-            near = np.sum((points - origin) ** 2, axis=1) <= self.cfg.radius**2
-            if not near.all():
-                points = points[near]
-                covs = covs[near] if covs is not None else None
         added = 0
         if len(points):
             keys = voxel_hash(points, self.cfg.voxel_size)
