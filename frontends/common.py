@@ -100,7 +100,6 @@ class Estimate:
             iterations=res.iterations,
             fitness=res.fitness,
             converged=res.converged,
-            stop_reason=res.stop_reason,
             inliers=res.num_inliers,
             inlier_ratio=res.inlier_ratio,
         )
