@@ -34,7 +34,12 @@ from slam.registration.information import (
     default_information,
     information_from_hessian,
 )
-from slam.registration.plausibility import PlausibilityConfig, RunningNormal, implausibility
+from slam.registration.plausibility import (
+    PlausibilityConfig,
+    RunningNormal,
+    implausibility,
+    relaxed,
+)
 from slam.types import Odometry, Scan
 
 log = logging.getLogger(__name__)
@@ -57,9 +62,13 @@ class CommonConfig:
     plausibility: the gate of each registration (see ``slam.registration.plausibility``).
     recovery_correspondence_factor: while tracking is lost, a coarse registration with this
     many times the correspondence distance runs from the prediction before the normal one.
-    max_lost_seconds: after tracking has been lost this long (s) the running normal is
-    forgotten and the next converged, physically possible registrations are trusted (the
-    scene changed for good: re-initialisation, ``extras["reinitialised"]`` = 1); 0 = never.
+    max_lost_seconds: every this many seconds of lost tracking the relative tolerances of
+    the gate are doubled (fitness and unconverged ratios x2, inlier/support/information
+    ratios /2), so that a scene that changed for good (an open field after a built-up
+    street) is accepted again after a while, while a sensor blinded by something moving
+    with it (correspondences ~0.08 x normal) stays rejected for longer; a registration
+    accepted with relaxed tolerances starts a new running normal
+    (``extras["reinitialised"]`` = 1). 0 = never relax.
     """
 
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -189,12 +198,22 @@ class ScanToMapFrontend:
             np.linalg.inv(self.T_trusted) @ est.pose,
             np.linalg.inv(T_pred) @ est.pose,
             since,
-            self._c.plausibility,
+            relaxed(self._c.plausibility, self._relaxation(since)),
         )
+
+    def _relaxation(self, since: float | None) -> float:
+        """Factor (1, 2, 4, ...) by which the gate's relative tolerances are widened."""
+        if not self.lost_frames or since is None or self._c.max_lost_seconds <= 0:
+            return 1.0
+        return float(2.0 ** np.floor(since / self._c.max_lost_seconds))
 
     def _trust(self, est: Estimate, stamp: float, extras: dict) -> None:
         """Book-keeping of a trusted registration: running normal, re-acquired motion."""
         if est.result is not None:
+            since = None if self.trusted_stamp is None else float(stamp) - self.trusted_stamp
+            if self._relaxation(since) > 1.0:  # lost long enough to accept a changed scene
+                self.normal.clear()
+                extras["reinitialised"] = 1
             self.normal.add(est.result, est.information.min_eigenvalue)
         if self.lost_frames > 0 and self.trusted_stamp is not None:
             # the motion model restarts from the mean motion over the lost stretch
@@ -222,10 +241,6 @@ class ScanToMapFrontend:
         filtered = None
         work = self._crop(scan)
         extras["n_after_crop"] = int(len(work))
-        lost_for = 0.0 if self.trusted_stamp is None else float(scan.stamp) - self.trusted_stamp
-        if self.lost_frames and lost_for >= self._c.max_lost_seconds > 0 and len(self.normal):
-            self.normal.clear()  # lost too long: the scene changed, start a new normal
-            extras["reinitialised"] = 1
         if len(work) < self._c.min_points:
             skipped = f"too few points ({len(work)} < {self._c.min_points} after range crop)"
         else:

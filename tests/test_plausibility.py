@@ -10,6 +10,7 @@ from slam.registration.plausibility import (
     PlausibilityConfig,
     RunningNormal,
     implausibility,
+    relaxed,
 )
 
 DT = 0.1
@@ -101,3 +102,19 @@ def test_running_normal_is_a_windowed_median():
     assert len(n) == 3
     n.clear()
     assert len(n) == 0 and np.isnan(n.median("information"))
+
+
+def test_relaxed_gate_accepts_a_changed_scene_but_not_a_blinded_sensor():
+    """After long lost tracking the tolerances widen: a scene with 0.15 x the usual
+    correspondences passes at factor 2, a blinded sensor's 0.07 x only at factor 4."""
+    cfg = PlausibilityConfig()
+    n = normal_of(0.1)
+
+    def why(res, factor):
+        return implausibility(res, 30.0, n, step(), np.eye(4), DT, relaxed(cfg, factor))
+
+    changed, blind = result(0.25, inliers=270, source=300), result(0.1, inliers=130, source=140)
+    assert why(changed, 1.0) is not None and why(changed, 2.0) is None
+    assert why(blind, 2.0) is not None and why(blind, 4.0) is None
+    assert relaxed(cfg, 1.0) is cfg
+    assert relaxed(cfg, 2.0).max_speed == cfg.max_speed  # physics does not relax

@@ -17,7 +17,7 @@ constant-velocity prediction over the time since the last trusted registration.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -72,6 +72,21 @@ class PlausibilityConfig:
             )
         if min(self.max_speed, self.max_turn_rate_deg) <= 0:
             raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
+
+
+def relaxed(cfg: PlausibilityConfig, factor: float) -> PlausibilityConfig:
+    """``cfg`` with its relative tolerances widened ``factor`` times (1 = unchanged); the
+    physical motion bounds stay."""
+    if factor == 1.0:
+        return cfg
+    return replace(
+        cfg,
+        max_fitness_ratio=cfg.max_fitness_ratio * factor,
+        unconverged_fitness_ratio=cfg.unconverged_fitness_ratio * factor,
+        min_inlier_ratio=cfg.min_inlier_ratio / factor,
+        min_support_ratio=cfg.min_support_ratio / factor,
+        min_information_ratio=cfg.min_information_ratio / factor,
+    )
 
 
 def motion_magnitude(T: np.ndarray) -> tuple[float, float]:
