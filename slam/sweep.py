@@ -189,7 +189,9 @@ def plot_heatmap(
         ]
         return float(np.mean(hits)) if hits else float("nan")
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    # an explicit layout engine: evo's plot settings (imported by slam.eval.plots in the
+    # same process) switch matplotlib's default one, and tight_layout then fails on colorbars
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), layout="constrained")
     if len(keys) == 1:
         xs = grid[keys[0]]
         ax.plot([str(x) for x in xs], [cell({keys[0]: x}) for x in xs], "o-")
@@ -217,7 +219,6 @@ def plot_heatmap(
             )
         fig.colorbar(im, ax=ax, label=f"APE {metric.removeprefix('ape_')} [m]")
     ax.set_title("parameter sweep")
-    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
