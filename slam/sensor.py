@@ -219,6 +219,25 @@ class BeamModel:
         mid = 0.5 * (self.elevations_deg[1:] + self.elevations_deg[:-1])
         return np.searchsorted(mid, elevation_deg(xyz)).astype(np.int16)
 
+    def time_of(self, xyz: np.ndarray, period_s: float) -> np.ndarray | None:
+        """(N,) per-point time (s from the sweep start, in [0, period_s)) of a beam-by-beam
+        cloud without a time field, or None when the cloud carries no usable order.
+
+        Assumes each beam's points are stored in firing order and its sweep begins at the
+        seam (true for organised Ouster clouds and the simulator's KITTI-style HDL-64E):
+        t = (azimuth advanced from the seam) / (2 pi) * period_s.
+        """
+        if not self.layout or self.seam_rad is None or period_s <= 0:
+            return None
+        xyz = np.asarray(xyz, dtype=np.float64)
+        fa = _forward_azimuth(xyz)
+        if fa is None:
+            return None
+        _, sign, _ = fa
+        az = np.arctan2(xyz[:, 1], xyz[:, 0])
+        phase = (sign * (az - self.seam_rad)) % (2 * np.pi)
+        return phase / (2 * np.pi) * period_s
+
     def describe(self) -> str:
         """One line for the log, e.g. 'inferred 64 beams, +2.8..-23.6 deg, ...'."""
         lo, hi = self.fov_deg

@@ -133,3 +133,21 @@ def test_beams_from_rings_bad_input() -> None:
     xyz, ring = spin(SENSORS["VLP-16"], 300, "firing")
     xyz[:10] = np.nan  # invalid returns are ignored
     assert beams_from_rings([xyz], [ring]).n_beams == 16
+
+
+def test_time_of_a_layout_cloud() -> None:
+    """Beam-by-beam cloud stored in firing order from a seam at +pi, turning clockwise (as
+    the simulator's KITTI-style HDL-64E): time = azimuth advanced from the seam."""
+    columns = 900
+    elev = SENSORS["HDL-64E"]
+    b, c = np.meshgrid(np.arange(64), np.arange(columns), indexing="ij")
+    az = np.pi - 2 * np.pi * c / columns  # clockwise from +pi, column c fires at c/columns
+    el = np.radians(elev[b])
+    xyz = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+    xyz = (xyz * 10.0).reshape(-1, 3)
+    t_true = (c * 0.1 / columns).ravel()
+    model = estimate_beams([xyz])
+    assert model.layout
+    t = model.time_of(xyz, 0.1)
+    assert np.abs(t - t_true).max() < 1e-9 + 0.1 / columns
+    assert estimate_beams([spin(elev, 900, "firing")[0]]).time_of(xyz, 0.1) is None
