@@ -5,7 +5,7 @@ a bumpy surface 0.8-1.45 m away that moves with the sensor (a truck alongside, a
 brushing past), keeping the points that were already closer than 1.5 m and the rings and
 per-point times. Before the plausibility gate, GICP registered those close points against
 the map with a normal-looking fitness, the blinding surface went into the map, the sensor
-"stood still" in it for 2 s and the run ended 3.8 m off.
+"stood still" in it for 2 s and the run ended 3.8 m off (FLOAM: 6.1 m).
 """
 
 import numpy as np
@@ -45,12 +45,18 @@ def park():
     return scans, *sim.read_ground_truth()
 
 
-def test_blinded_stretch_is_flagged_and_recovered(park):
+@pytest.mark.parametrize(
+    ("name", "max_after", "max_final"),
+    # improved FLOAM ends where its clean run ends (0.10 m); FLOAM drifts 0.86 m on the clean
+    # park over these 150 frames, so it is held to that (before the gate: 6.1 m)
+    [("improved_floam", 0.5, 0.25), ("floam", 1.0, 1.0)],
+)
+def test_blinded_stretch_is_flagged_and_recovered(park, name, max_after, max_final):
     scans, gt_stamps, gt = park
     assert len(scans) == FRAMES
     seq = blinded(scans, BLIND)
     assert max(np.linalg.norm(seq[i].xyz, axis=1).max() for i in BLIND) < 1.5
-    fe = instantiate("slam.frontends", load_config("improved_floam").frontend, "frontend")
+    fe = instantiate("slam.frontends", load_config(name).frontend, "frontend")
     outs = [fe.process(s) for s in seq]
     idx = np.clip(np.searchsorted(gt_stamps, [o.stamp for o in outs]), 0, len(gt) - 1)
     G = np.linalg.inv(gt[idx[0]]) @ gt[idx]
@@ -61,5 +67,5 @@ def test_blinded_stretch_is_flagged_and_recovered(park):
     assert [i for i, o in enumerate(outs) if o.extras["recovered"]] == [BLIND.stop]
     assert not any(outs[i].is_keyframe for i in BLIND)
     # the blinded stretch costs its own drift (constant velocity over 2 s), nothing more
-    assert err[BLIND.stop :].max() < 0.5, err[BLIND.stop :].max()
-    assert err[-1] < 0.25, err[-1]
+    assert err[BLIND.stop :].max() < max_after, err[BLIND.stop :].max()
+    assert err[-1] < max_final, err[-1]
