@@ -60,7 +60,7 @@ def _run(job: dict) -> dict:
         "fps": m.get("frames_per_second"),
         "peak_mb": m.get("peak_memory_mb"),
         "degenerate": m.get("degenerate_frames"),
-        "lost": m.get("frontend_frames_lost"),
+        "lost": (m.get("frontend_counts") or {}).get("tracking_lost"),
         "loops": m.get("loops_closed"),
         "sensor_model": m.get("sensor"),
     }

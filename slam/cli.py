@@ -51,9 +51,13 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
             f"skipped {sum(skipped.values())} input messages: "
             + ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items()))
         )
-    lost = metrics.get("frontend_frames_lost")
-    if lost:
-        _eprint(f"{lost} frames with implausible registration: prediction kept, not mapped")
+    counts = metrics.get("frontend_counts") or {}
+    if counts.get("tracking_lost") or counts.get("rejected"):
+        _eprint(
+            f"tracking: {counts.get('rejected', 0)} implausible registrations rejected, "
+            f"{counts.get('tracking_lost', 0)} frames lost (prediction kept, not mapped), "
+            f"{counts.get('recovered', 0)} recoveries"
+        )
     if "eval" in summary:
         ape = summary["eval"].ape_trans
         _eprint(

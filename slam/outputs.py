@@ -26,6 +26,8 @@ CONFIG_YAML = "config.yaml"
 LOOPS_CSV = "loops.csv"
 REPORT_HTML = "report.html"
 APE_JSON = "ape.json"
+# 0/1 per-frame flags of the scan-to-map front ends (frontends/common.py)
+TRACKING_COUNTERS = ("rejected", "tracking_lost", "recovered", "reinitialised")
 
 
 def peak_memory_mb() -> float:
@@ -69,6 +71,10 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "skipped_messages": dict(sorted(st.skipped_messages.items())),
         "messages_skipped": st.messages_skipped,
         "frontend_frames_lost": st.lost_frames,
+        # frames (counts) with each per-frame tracking flag the front end reports
+        "frontend_counts": {
+            k: int(round(st.diagnostic_sums.get(k, 0.0))) for k in TRACKING_COUNTERS
+        },
         "degenerate_frames": st.degenerate_frames,
         "loops_closed": st.loops_closed,
         "factors": dict(st.factor_counts),
