@@ -136,6 +136,7 @@ class ScanToMapFrontend:
         self.n_keyframes = 0
         # tracking: running normal of trusted registrations, the last trusted pose
         self.normal = RunningNormal(common.plausibility.window)
+        self.n_trusted = 0  # trusted poses so far (the first frame included)
         self.lost_frames = 0  # consecutive frames without a trusted registration
         self.T_trusted = np.eye(4)
         self.trusted_stamp: float | None = None
@@ -191,12 +192,15 @@ class ScanToMapFrontend:
         since = None
         if self.trusted_stamp is not None and stamp > self.trusted_stamp:
             since = float(stamp - self.trusted_stamp)
+        # the constant-velocity prediction is a measurement only once two trusted poses gave
+        # it a velocity: a drive that starts at car speed has none on its first registration
+        off_prediction = np.linalg.inv(T_pred) @ est.pose if self.n_trusted >= 2 else np.eye(4)
         return implausibility(
             res,
             est.information.min_eigenvalue,
             self.normal,
             np.linalg.inv(self.T_trusted) @ est.pose,
-            np.linalg.inv(T_pred) @ est.pose,
+            off_prediction,
             since,
             relaxed(self._c.plausibility, self._relaxation(since)),
         )
@@ -225,6 +229,7 @@ class ScanToMapFrontend:
         self.lost_frames = 0
         self.T_trusted = est.pose.copy()
         self.trusted_stamp = float(stamp)
+        self.n_trusted += 1
 
     # ------------------------------------------------------------------ main loop
     def process(self, scan: Scan) -> Odometry:
