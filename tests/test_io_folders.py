@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -201,7 +203,8 @@ def test_real_kitti_raw_pcds_with_trailing_bytes(kitti_raw_pcds):
     assert files[0].stat().st_size > header.index("DATA binary") + 12 + 119978 * 16  # a tail
     assert len(scans[0]) == 119978
     assert all(isinstance(s, Scan) and 110_000 < len(s) < 130_000 for s in scans)
-    assert [s.stamp for s in scans] == [float(i) for i in range(22)]  # numeric file names
+    # zero-padded frame counters as names: frame index x 0.1 s (KITTI's 10 Hz)
+    assert [s.stamp for s in scans] == pytest.approx([0.1 * i for i in range(22)])
     first = scans[0]
     r = np.linalg.norm(first.xyz, axis=1)
     assert 70 < r.max() < 81 and first.intensity.min() >= 0 and first.intensity.max() < 1
@@ -223,7 +226,7 @@ def test_folder_with_an_empty_pcd_in_the_middle(tmp_path):
     assert "2.pcd" in got[2].detail
     assert isinstance(got[3], SkippedMessage) and got[3].reason == "empty file"
     assert [len(got[i]) for i in (0, 1, 4)] == [20, 21, 24]
-    assert [got[i].stamp for i in (0, 1, 4)] == [0.0, 1.0, 4.0]
+    assert [got[i].stamp for i in (0, 1, 4)] == pytest.approx([0.0, 0.1, 0.4])
 
 
 def test_pcd_corrupt_files_are_skipped_with_reasons(tmp_path):
@@ -309,3 +312,10 @@ def test_compressed_pcd_and_ply_through_open3d_damaged_ones_skipped(tmp_path):
     np.testing.assert_allclose(got[0].xyz, xyz, atol=1e-6)
     np.testing.assert_allclose(got[1].xyz, xyz, atol=1e-6)
     assert [got[2].reason, got[3].reason] == ["empty file", "corrupt file"]
+
+
+def test_zero_padded_frame_counters_are_frames_not_seconds():
+    files = [Path(f"{i:010d}.pcd") for i in (0, 1, 2, 4)]  # one frame missing
+    np.testing.assert_allclose(stamps_from_names(files), [0.0, 0.1, 0.2, 0.4])
+    seconds = [Path("1600000000.100.pcd"), Path("1600000000.200.pcd")]
+    np.testing.assert_allclose(stamps_from_names(seconds), [1600000000.1, 1600000000.2])

@@ -37,11 +37,21 @@ def cloud_files(path: Path) -> list[Path]:
 
 
 def stamps_from_names(files: list[Path]) -> np.ndarray:
-    """Stamps (s) parsed from numeric file stems, or index * 0.1 when any does not parse."""
+    """Stamps (s) parsed from numeric file stems, or index * 0.1 when any does not parse.
+
+    Zero-padded frame counters (``0000000000.pcd``, ``000001.bin``: small integers mostly
+    one apart) are frame indices, not seconds: index * 0.1 s as well."""
     try:
         values = np.array([float(f.stem) for f in files], dtype=np.float64)
     except ValueError:
         return np.arange(len(files)) * SCAN_PERIOD_S
+    if (
+        values.size > 1
+        and np.all(values == np.round(values))
+        and values.max() < 1e6
+        and np.median(np.diff(np.sort(values))) == 1.0
+    ):
+        return values * SCAN_PERIOD_S
     if values.size and values.min() > 1e15:
         return values * 1e-9
     if values.size and values.min() > 1e12:
