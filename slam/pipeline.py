@@ -132,6 +132,7 @@ class Pipeline:
         self.state = RunState()
         self.beams: Any = None  # slam.sensor.BeamModel once estimated from the first scans
         self._buffer: list[Scan] = []  # the first scans, held until the beam model exists
+        self._period = 0.1  # sweep period (s): median stamp step of the first scans
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self.view = GraphView(self.state.keyframes, self._estimate)
@@ -167,8 +168,14 @@ class Pipeline:
         log.info("sensor: %s", self.state.sensor)
 
     def _with_rings(self, scan: Scan) -> Scan:
-        if scan.ring is None and self.beams and len(scan):
+        """Fill what the driver left out: the ring from the beam table and, for clouds
+        stored beam by beam in firing order, the per-point time from the azimuth."""
+        if not (self.beams and len(scan)):
+            return scan
+        if scan.ring is None:
             scan.ring = self.beams.ring_of(scan.xyz)
+        if scan.time is None and self.beams.layout:
+            scan.time = self.beams.time_of(scan.xyz, self._period)
         return scan
 
     def _feed(self, scan: Scan) -> None:
@@ -186,6 +193,9 @@ class Pipeline:
         if not self._buffer:
             return
         if self.beams is None:
+            stamps = np.array([s.stamp for s in self._buffer])
+            if len(stamps) > 1 and 0.0 < np.median(np.diff(stamps)) < 1.0:
+                self._period = float(np.median(np.diff(stamps)))  # the sweep period (s)
             self._estimate_beams(self._buffer)
         held, self._buffer = self._buffer, []
         for scan in held:
