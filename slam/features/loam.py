@@ -32,8 +32,7 @@ class FeatureConfig:
     fov_deg (deg). The pipeline normally fills the ring once per sensor, so neither is used.
     window: neighbours each side for the curvature c = ||sum_j (p_j - p_i)||^2 (m^2) and for
     suppression. edge_threshold/plane_threshold: c above -> edge candidate, below -> plane.
-    max_less_sharp: edges per ring and sector. max_sharp/max_flat: unused (A-LOAM's
-    frame-to-frame picks were removed; the keys stay so that older recipes load).
+    max_less_sharp: edges per ring and sector.
     neighbor_gap: squared gap between consecutive ring points that stops suppression.
     reject_occluded/reject_parallel: LOAM's two rejections (occlusion_gap m^2 and
     occlusion_ratio as in LOAM; parallel_ratio * range^2 bound on both consecutive squared
@@ -48,9 +47,7 @@ class FeatureConfig:
     n_sectors: int = 6
     edge_threshold: float = 0.1
     plane_threshold: float = 0.1
-    max_sharp: int = 2
     max_less_sharp: int = 20
-    max_flat: int = 4
     min_range: float = 0.5
     max_range: float = 200.0
     neighbor_gap: float = 0.05
