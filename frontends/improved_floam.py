@@ -47,8 +47,10 @@ class ImprovedFloamConfig(CommonConfig):
     16-beam ring is a thin arc, a feature's k neighbours lie on that ring alone, and eq. (1)
     on them claims a sharp "normal" towards the next ring. The ring pattern moves with the
     sensor, so trusting it snapped every scan onto the map's rings (toward zero motion).
-    A support from one ring is made isotropic at its extent (no trusted direction, see
-    ``estimate_covariances``); supports spanning rings keep eq. (1) as written. The map
+    A support from one ring borrows the nearest points of the other rings within
+    ``registration.span_distance`` (eq. (1) then sees the surface across the rings); only
+    where no other ring is that close is it isotropic at its extent (no trusted direction,
+    see ``estimate_covariances``). Supports spanning rings keep eq. (1) as written. The map
     side is the dense map itself (many scans, many rings), so it needs no labels.
     """
 
@@ -145,6 +147,7 @@ class ImprovedFloam(ScanToMapFrontend):
             plane_epsilon=rc.plane_epsilon,
             line_ratio=rc.line_ratio,
             labels=rings[ref_idx],
+            span_distance=rc.span_distance,
             threads=rc.threads,
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3

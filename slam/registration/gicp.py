@@ -47,7 +47,12 @@ class GicpConfig:
     lines -> plane (plane_epsilon, 1, 1), a line spanning several scan lines (pole, corner)
     -> line (plane_epsilon, plane_epsilon, 1), a support sampled by one scan line only (a
     ring on open ground) or degenerate -> isotropic (1, 1, 1), i.e. no direction is
-    trusted. line_ratio: lambda_2 / lambda_1 below which a support is a line. max_correspondence:
+    trusted. line_ratio: lambda_2 / lambda_1 below which a support is a line.
+    span_distance (m): a source support whose k neighbours all lie on one scan line borrows
+    the nearest points of the other scan lines within this distance, so that eq. (1) sees the
+    surface across the lines (taken as planar over the gap; 16-beam ground rings near a car
+    are 1-2.5 m apart); 0 = off (such a support is then isotropic at its extent, see
+    ``estimate_covariances``). max_correspondence:
     rejection distance (m). transformation_epsilon: squared step size (m^2 and rad^2) below
     which the solver stops; fitness_epsilon: relative change of the cost below which it stops.
     """
@@ -57,6 +62,7 @@ class GicpConfig:
     covariance_mode: str = "raw"
     plane_epsilon: float = 1e-3
     line_ratio: float = 0.05
+    span_distance: float = 2.0
     max_correspondence: float = 1.0
     max_iterations: int = 30
     transformation_epsilon: float = 1e-6
@@ -71,6 +77,8 @@ class GicpConfig:
             )
         if self.k_covariance < 3:
             raise ConfigError(f"k_covariance must be >= 3, got {self.k_covariance}")
+        if self.span_distance < 0:
+            raise ConfigError(f"span_distance must be >= 0 m, got {self.span_distance}")
         if self.max_correspondence <= 0 or self.max_iterations < 1:
             raise ConfigError("max_correspondence must be > 0 and max_iterations >= 1")
 
@@ -157,6 +165,76 @@ def _check_points(xyz: np.ndarray, name: str) -> np.ndarray:
 # --------------------------------------------------------------------------- covariances
 
 
+def _covariances_of(nb: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) eq. (1) of neighbour sets nb (n, K, 3) with 0/1 weights w (n, K)."""
+    cnt = w.sum(axis=1)
+    centred = nb - (np.einsum("nk,nki->ni", w, nb) / cnt[:, None])[:, None, :]
+    return np.einsum("nk,nki,nkj->nij", w, centred, centred) / (cnt - 1)[:, None, None]
+
+
+def _span_scan_lines(
+    xyz: np.ndarray,
+    query: np.ndarray,
+    idx: np.ndarray,
+    rows: np.ndarray,
+    labels: np.ndarray,
+    tree: cKDTree,
+    span_distance: float,
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. (1) on one-line supports extended across scan lines.
+
+    For each query in ``rows`` (its k neighbours ``idx`` all on one scan line) the
+    m = max(k // 2, 3) nearest reference points of *other* lines within ``span_distance``
+    join its support. Returns (the rows that found at least 2 such points, their (n, 3, 3)
+    covariances in m^2, without lambda). The m are looked for among the 4k nearest
+    neighbours (one query on ``tree``); rows where that set may miss some (fewer than m
+    found and the set does not exhaust ``span_distance``) query a KD-tree of the other
+    lines' points, one per scan line (<= the number of beams); no per-point loop.
+    """
+    k = idx.shape[1]
+    m = max(k // 2, 3)
+    k_wide = min(4 * k, len(xyz))
+    d, j = tree.query(query[rows], k=k_wide, distance_upper_bound=span_distance, workers=threads)
+    d, j = d.reshape(len(rows), k_wide), j.reshape(len(rows), k_wide)
+    found = np.isfinite(d)
+    j = np.where(found, j, 0)
+    other = found & (labels[j] != labels[idx[rows, :1]])
+    take = other & (np.cumsum(other, axis=1) <= m)  # the m nearest points of other lines
+    n_take = take.sum(axis=1)
+    exact = (n_take >= m) | ~found[:, -1]
+    fast = exact & (n_take >= 2)
+    done = [rows[fast]]
+    covs = [
+        _covariances_of(
+            np.concatenate([xyz[idx[rows[fast]]], xyz[j[fast]]], axis=1),
+            np.concatenate([np.ones((int(fast.sum()), k)), take[fast]], axis=1),
+        )
+    ]
+    slow = rows[~exact]
+    own = labels[idx[slow, 0]]
+    for line in np.unique(own):
+        sel = slow[own == line]
+        cand = np.flatnonzero(labels != line)
+        if len(cand) < 2:
+            continue
+        ds, js = cKDTree(xyz[cand]).query(
+            query[sel], k=min(m, len(cand)), distance_upper_bound=span_distance, workers=threads
+        )
+        ok = np.isfinite(ds.reshape(len(sel), -1))
+        js = js.reshape(len(sel), -1)
+        enough = ok.sum(axis=1) >= 2
+        sel, ok, js = sel[enough], ok[enough], js[enough]
+        done.append(sel)
+        covs.append(
+            _covariances_of(
+                np.concatenate([xyz[idx[sel]], xyz[cand[np.where(ok, js, 0)]]], axis=1),
+                np.concatenate([np.ones((len(sel), k)), ok], axis=1),
+            )
+        )
+    return np.concatenate(done), np.concatenate(covs)
+
+
 def estimate_covariances(
     xyz: np.ndarray,
     k: int = 10,
@@ -168,6 +246,7 @@ def estimate_covariances(
     plane_epsilon: float = 1e-3,
     line_ratio: float = 0.05,
     labels: np.ndarray | None = None,
+    span_distance: float = 0.0,
     threads: int = 2,
 ) -> np.ndarray:
     """(M, 3, 3) covariances (m^2) of the k nearest neighbours in ``xyz`` of each query point.
@@ -178,8 +257,16 @@ def estimate_covariances(
     weighs alike and acts as a plane; the result is then dimensionless.
 
     ``labels`` (the scan line / ring of each reference point), when given, mark supports whose
-    neighbours all lie on one scan line; mode "raw" makes their covariance isotropic at the
-    support's extent (largest eigenvalue), since one line cannot tell a surface's normal.
+    neighbours all lie on one scan line: one line cannot tell a surface's normal. In mode
+    "raw" such a support is extended by the max(k // 2, 3) nearest points of the other scan
+    lines within ``span_distance`` (m) and eq. (1) runs on the union (the surface seen across
+    the lines); where fewer than 2 such points exist (or ``span_distance`` is 0) its
+    covariance is isotropic at the support's extent (largest eigenvalue). That isotropic
+    fallback alone left ~90 % of 16-beam ground supports nearly point-to-point and weak
+    (< 20 % of the pitch information), and point-to-point on ring-sampled facades pulls the
+    scan vertically toward the map's ring pattern, which moves with the speed: a steady pitch
+    bias at car speed (simulated urban drive at 10-15 m/s: -0.1 to -0.4 deg per frame against
+    a ground-truth map, +9.7 m of height after 134 m).
 
     mode "shape" regularises by the shape the support really has (dimensionless as well):
     with eigenvalues l1 >= l2 >= l3, a support with l2 >= line_ratio * l1 is a surface ->
@@ -205,6 +292,20 @@ def estimate_covariances(
         lab = np.asarray(labels)[idx.reshape(len(query), k_eff)]
         single = np.all(lab == lab[:, :1], axis=1)
     if mode == "raw" and single is not None and single.any():
+        if span_distance > 0:  # the surface across the scan lines, where they are close
+            spanned, spanned_cov = _span_scan_lines(
+                xyz,
+                query,
+                idx.reshape(len(query), k_eff),
+                np.flatnonzero(single),
+                np.asarray(labels),
+                tree,
+                span_distance,
+                threads,
+            )
+            cov[spanned] = spanned_cov
+            single = single.copy()
+            single[spanned] = False
         # isotropic at the support's extent: "somewhere along this scan line", no direction
         cov[single] = np.eye(3) * np.linalg.eigvalsh(cov[single])[:, 2, None, None]
     if mode == "plane":
