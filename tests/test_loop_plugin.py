@@ -449,3 +449,53 @@ def test_auto_geometry_pools_the_first_keyframes():
         plugin.on_keyframe(kf, view)
         assert (plugin.sc_params is None) == (i < cfg.auto_keyframes - 1)
     assert len(plugin.db) == cfg.auto_keyframes  # the buffered keyframes are all described
+
+
+def _street(rng: np.random.Generator) -> np.ndarray:
+    """A 16 m wide street, 80 m long: ground, two facades with recesses, poles, parked cars."""
+    parts = [
+        np.column_stack([rng.uniform(-40, 40, 20000), rng.uniform(-8, 8, 20000), np.zeros(20000)])
+    ]
+    for side in (-8.0, 8.0):
+        x, z = rng.uniform(-40, 40, 15000), rng.uniform(0, 10, 15000)
+        recess = (np.sin(x * 1.3) > 0.6) & (z > 2) & (np.floor(z / 3) % 2 == 1)
+        parts.append(np.column_stack([x, np.where(recess, side * 1.04, side), z]))
+    for px in rng.uniform(-38, 38, 12):  # poles on one side only: the street is not symmetric
+        a = rng.uniform(0, 2 * np.pi, 300)
+        parts.append(
+            np.column_stack([px + 0.15 * np.cos(a), 6.5 + 0.15 * np.sin(a), rng.uniform(0, 5, 300)])
+        )
+    for cx in rng.uniform(-35, 35, 6):
+        parts.append(
+            np.column_stack(
+                [
+                    rng.uniform(cx - 2, cx + 2, 800),
+                    rng.uniform(-7, -5.5, 800),
+                    rng.uniform(0, 1.5, 800),
+                ]
+            )
+        )
+    return np.concatenate(parts)
+
+
+def test_street_driven_back_the_other_way_verifies_from_a_yaw_half_a_turn_off():
+    """Scan Context's yaw of a street seen the other way is often ~0 instead of 180 deg: the
+    half-turn start must find the true pose (4.4 m aside, facing back)."""
+    rng = np.random.default_rng(4)
+    world = _street(rng)
+    T_w_t = np.eye(4)
+    T_w_t[:3, 3] = [0.0, -2.2, 1.8]
+    T_w_s = np.diag([-1.0, -1.0, 1.0, 1.0])
+    T_w_s[:3, 3] = [1.0, 2.2, 1.8]
+
+    def seen_from(T):
+        p = (world - T[:3, 3]) @ T[:3, :3]
+        return p[np.linalg.norm(p, axis=1) < 40.0]
+
+    truth = np.linalg.inv(T_w_t) @ T_w_s
+    res = verify(seen_from(T_w_t), seen_from(T_w_s), np.eye(4), VerifyParams())
+    assert res.accepted, res.reason
+    assert abs(abs(res.yaw_deg) - 180.0) < 0.5
+    np.testing.assert_allclose(res.T_target_source[:3, 3], truth[:3, 3], atol=0.05)
+    off = verify(seen_from(T_w_t), seen_from(T_w_s), np.eye(4), VerifyParams(try_flip=False))
+    assert not off.accepted or abs(off.yaw_deg) < 90  # without the flip: rejected or wrong

@@ -78,8 +78,9 @@ class LoopClosurePlugin:
         Verification (see slam.loop.verify.VerifyParams): verify_voxel (m, also the stored
         clouds' voxel), neighbours (+-n keyframes merged into each local cloud),
         max_correspondence / coarse_voxel / coarse_max_correspondence (m, GICP stages),
-        global_search (m, bird's-eye-view start search, 0 = off), max_offset (m), inlier_distance
-        (m) / beam_gap_deg (range-relative neighbour radius), plane_tolerance (m) /
+        global_search (m, bird's-eye-view start search, 0 = off), try_flip (also start half a
+        turn from Scan Context's yaw: streets driven back the other way), max_offset (m),
+        inlier_distance (m) / beam_gap_deg (range-relative neighbour radius), plane_tolerance (m) /
         plane_range_ratio, max_fitness (m, RMS point-to-plane), min_overlap (0-1) /
         min_overlap_near / overlap_loss_per_m (share required falls with the offset, per m),
         yaw_tolerance_deg, max_verify (candidates tried per keyframe),
@@ -116,6 +117,7 @@ class LoopClosurePlugin:
         coarse_voxel: float = 0.5
         coarse_max_correspondence: float = 2.0
         global_search: float = 20.0
+        try_flip: bool = True
         max_offset: float = 20.0
         inlier_distance: float = 0.3
         beam_gap_deg: float = 2.0
@@ -177,6 +179,7 @@ class LoopClosurePlugin:
             coarse_voxel=cfg.coarse_voxel,
             coarse_max_correspondence=cfg.coarse_max_correspondence,
             global_search=cfg.global_search,
+            try_flip=cfg.try_flip,
             max_offset=cfg.max_offset,
             inlier_distance=cfg.inlier_distance,
             beam_gap_deg=cfg.beam_gap_deg,

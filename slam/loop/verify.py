@@ -55,6 +55,8 @@ class VerifyParams:
     of bev_cell (m), over yaws of bev_yaw_offsets_deg around the guess. max_offset (m): a
     registered offset longer than this is no revisit (the two scans would barely overlap).
     global_skip_overlap: the search is skipped when the guess already scores this overlap.
+    try_flip: also start from the guess turned by 180 deg (Scan Context's yaw is ambiguous by
+    half a turn in streets and corridors); the odometry-consistency gate judges the result.
     max_judged: the score uses at most this many source points (an even subsample).
     inlier_distance (m): neighbour radius near the sensor; beam_gap_deg: far away the radius
     is tan(beam_gap) x range (the coarsest common ring spacing, 16 beams over 30 deg: 2 deg).
@@ -74,6 +76,7 @@ class VerifyParams:
     global_search: float = 20.0
     max_offset: float = 20.0
     global_skip_overlap: float = 0.8
+    try_flip: bool = True
     bev_cell: float = 0.5
     bev_yaw_offsets_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
     max_iterations: int = 30
@@ -302,6 +305,11 @@ def _align(t: _Prepared, s: _Prepared, T: np.ndarray, corr: float, p: VerifyPara
     )  # fmt: skip
 
 
+def _half_turn() -> np.ndarray:
+    """4x4 rotation by 180 deg about the sensor's z axis."""
+    return np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
 def _rejected(T: np.ndarray, reason: str) -> VerifyResult:
     return VerifyResult(
         False, np.asarray(T, float), np.inf, 0.0, np.degrees(yaw_of(T)), np.zeros((6, 6)), reason
@@ -329,8 +337,16 @@ def verify(
                   _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
     judged = judged_points(fs, T0[:3, :3], p.max_judged)
     best = None
-    for name in ("guess", "bev"):  # coarse stage per start, kept only if it improves the score
-        if name == "bev":
+    # coarse stage per start, kept only if it improves the score. "flip": the guess turned by
+    # half a turn: Scan Context's column shift is ambiguous by 180 deg in street canyons and
+    # corridors (their descriptor is nearly symmetric under a half turn), so a street driven
+    # back the other way often gets yaw ~0 instead of ~180; the registration decides
+    for name in ("guess", "flip", "bev"):
+        if name == "flip":
+            if not p.try_flip:  # always tried: a wrong half turn can score 0.8 in a street
+                continue
+            start = T0 @ _half_turn()
+        elif name == "bev":
             if p.global_search <= 0.0 or best[2][0] >= p.global_skip_overlap:
                 break  # off, or the guess already explains the scan
             start, _ = bev_translation(
@@ -351,6 +367,8 @@ def verify(
         if best is None or score[0] > best[2][0]:
             best = (name, T, score, kept, start)
     name, T, score, kept, start = best
+    if name == "flip":
+        guess_yaw = yaw_of(start)
     if score[0] < 0.5 * p.min_overlap:  # hopeless: a fine stage cannot double the overlap
         return VerifyResult(
             False, T, score[1], score[0], np.degrees(yaw_of(T)), np.zeros((6, 6)),
