@@ -133,7 +133,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_scenes_") as tmp:
         for scene in args.scene:
             for sensor in args.sensor:
-                seq = ensure_sequence(scene, sensor=sensor)
+                seq = ensure_sequence(scene, sensor=sensor, frames=args.frames)
                 base = {
                     "scene": scene,
                     "sensor": sensor,
