@@ -1,11 +1,10 @@
 """GICP (paper 000, section 2.2): synthetic 6-DoF recovery and the real HDL-32E scan pair."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared_data import SHARED_DATA, shared_path
 
 from slam.preprocess.voxel import voxel_downsample
 from slam.registration.gicp import (
@@ -21,7 +20,7 @@ from slam.registration.gicp import (
 )
 from slam.registration.information import InformationConfig, information_from_hessian
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "scan_pair"
+DATA = SHARED_DATA / "scan_pair"
 
 
 def pose_error(T_est, T_true):
@@ -237,10 +236,10 @@ def test_stalled_solve_is_not_convergence():
     assert res.iterations == 1
 
 
-@pytest.mark.skipif(not (DATA / "source.ply").is_file(), reason="shared scan pair absent")
 def test_gicp_real_hdl32_pair():
     import open3d as o3d
 
+    shared_path("scan_pair", "source.ply")  # fails (never skips) when the data is missing
     src = np.asarray(o3d.io.read_point_cloud(str(DATA / "source.ply")).points, dtype=np.float64)
     tgt = np.asarray(o3d.io.read_point_cloud(str(DATA / "target.ply")).points, dtype=np.float64)
     T_ref = np.loadtxt(DATA / "T_target_source.txt")
