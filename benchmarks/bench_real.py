@@ -95,7 +95,8 @@ def main() -> None:
         f"  frames/s: ours {fps_ours:.2f}, small_gicp scan-to-scan {fps_ref:.2f} "
         f"(ratio {fps_ours / fps_ref:.2f})"
     )
-    stages = {k: np.mean([o.extras.get(k, 0.0) for o in outs[1:]]) for k in outs[-1].extras}
+    timed = [k for k in outs[-1].extras if k.endswith("_ms")]  # numeric timings only
+    stages = {k: np.mean([o.extras.get(k, 0.0) for o in outs[1:]]) for k in timed}
     print(
         "  stage ms: "
         + ", ".join(f"{k[:-3]} {v:.0f}" for k, v in stages.items() if k.endswith("_ms"))
