@@ -346,6 +346,11 @@ def verify(
             if not p.try_flip:  # always tried: a wrong half turn can score 0.8 in a street
                 continue
             start = T0 @ _half_turn()
+            if p.global_search > 0.0:  # the other lane is metres aside: search it at once
+                start, _ = bev_translation(
+                    ct.points if coarse else tgt, cs.points if coarse else src,
+                    yaw_of(start), p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
+                )  # fmt: skip
         elif name == "bev":
             if p.global_search <= 0.0 or best[2][0] >= p.global_skip_overlap:
                 break  # off, or the guess already explains the scan
