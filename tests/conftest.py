@@ -58,3 +58,11 @@ def urban_os128_short() -> SimResult:
     """30 frames of the urban drive with the Ouster OS1-128 (~120k points per scan, `t` in
     ns, 48-byte points, ring 0 = top beam, row-major)."""
     return ensure_sequence("urban", frames=30, sensor="os128")
+
+
+@pytest.fixture(scope="module")
+def evo_home(tmp_path_factory):
+    """evo writes ~/.evo on its first import: a module using evo's plots gets its own HOME."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
+        yield

@@ -15,13 +15,7 @@ from test_eval_report import synthetic
 from slam.errors import InputError
 from slam.eval import plots
 
-
-@pytest.fixture(scope="module", autouse=True)
-def evo_home(tmp_path_factory):
-    """evo writes ~/.evo on its first import: give this module its own HOME."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
-        yield
+pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

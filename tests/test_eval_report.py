@@ -47,12 +47,7 @@ def synthetic(noise: float, n: int = 150, seed: int = 1):
     return evaluate_arrays(stamps, est, stamps, gt, EvalOptions())
 
 
-@pytest.fixture(scope="module", autouse=True)
-def evo_home(tmp_path_factory):
-    """evo writes ~/.evo on its first import: give this module its own HOME."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
-        yield
+pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -61,6 +61,22 @@ TIME_CODES = [
 ]  # fmt: skip
 
 
+def _fill(draw, rec: np.ndarray, specs, n: int, scale: float) -> dict:
+    """Fill the records' fields from their roles; the expected column of each role."""
+    cols = {}
+    for name, code, count, role in specs:
+        if role == "t":
+            t = draw(sweeps(n))
+            cols["t"] = t
+            raw = t * scale
+            rec[name] = np.round(raw) if np.dtype(code).kind in "iu" else raw
+        elif count == 1:
+            rec[name] = draw(values_of(code, n))
+        if role and role != "t":
+            cols[role] = rec[name].copy()
+    return cols
+
+
 @st.composite
 def sweeps(draw, n: int) -> np.ndarray:
     """Per-point times (s) of one sweep of n >= 2 points: 0 and the period are both there."""
@@ -81,7 +97,7 @@ def clouds(draw):
     for role, names in (("i", INTENSITY_NAMES), ("ring", RING_NAMES)):
         if draw(st.booleans()):
             specs.append((draw(st.sampled_from(names)), draw(st.sampled_from(NUMERIC)), 1, role))
-    time_code = None
+    time_code, scale = None, 1.0
     if n >= 2 and draw(st.booleans()):
         time_code, scale = draw(st.sampled_from(TIME_CODES))
         specs.append((draw(st.sampled_from(TIME_NAMES)), time_code, 1, "t"))
@@ -104,17 +120,7 @@ def clouds(draw):
         }
     )
     rec = np.zeros(n, dtype=dtype)
-    cols = {}
-    for name, code, count, role in specs:
-        if role == "t":
-            t = draw(sweeps(n))
-            cols["t"] = t
-            raw = t * scale
-            rec[name] = np.round(raw) if np.dtype(code).kind in "iu" else raw
-        elif count == 1:
-            rec[name] = draw(values_of(code, n))
-        if role and role != "t":
-            cols[role] = rec[name].copy()
+    cols = _fill(draw, rec, specs, n, scale)
     row_pad = draw(st.integers(0, 5))
     rows = rec.view(np.uint8).reshape(height, width * step)
     data = np.hstack([rows, np.full((height, row_pad), 0xAB, np.uint8)]).reshape(-1)
@@ -241,7 +247,7 @@ def pcd_files(draw):
             specs.append(
                 (draw(st.sampled_from(names)), draw(st.sampled_from(["f4", *ints])), 1, role)
             )
-    time_code = None
+    time_code, scale = None, 1.0
     if n >= 2 and draw(st.booleans()):
         time_code, scale = draw(st.sampled_from(TIME_CODES))
         specs.append((draw(st.sampled_from(TIME_NAMES)), time_code, 1, "t"))
@@ -250,17 +256,7 @@ def pcd_files(draw):
     specs = [specs[i] for i in draw(st.permutations(range(len(specs))))]
     dtype = np.dtype([(nm, "<" + c) if k == 1 else (nm, "<" + c, (k,)) for nm, c, k, _ in specs])
     rec = np.zeros(n, dtype)
-    cols = {}
-    for name, code, count, role in specs:
-        if role == "t":
-            t = draw(sweeps(n))
-            cols["t"] = t
-            raw = t * scale
-            rec[name] = np.round(raw) if np.dtype(code).kind in "iu" else raw
-        elif count == 1:
-            rec[name] = draw(values_of(code, n))
-        if role and role != "t":
-            cols[role] = rec[name].copy()
+    cols = _fill(draw, rec, specs, n, scale)
     tail = (
         draw(st.binary(max_size=40)) if not ascii_ else draw(st.sampled_from([b"", b"\n", b"\n\n"]))
     )
