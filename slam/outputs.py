@@ -70,7 +70,6 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "skipped_frames": st.skipped_frames,
         "skipped_messages": dict(sorted(st.skipped_messages.items())),
         "messages_skipped": st.messages_skipped,
-        "frontend_frames_lost": st.lost_frames,
         # frames (counts) with each per-frame tracking flag the front end reports
         "frontend_counts": {
             k: int(round(st.diagnostic_sums.get(k, 0.0))) for k in TRACKING_COUNTERS

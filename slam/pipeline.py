@@ -70,7 +70,6 @@ class RunState:
     diagnostic_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     skipped_frames: int = 0  # frames the front end could not register (prediction kept)
     skipped_messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    lost_frames: int = 0  # implausible registration: prediction kept, not mapped
     degenerate_frames: int = 0
     loops_closed: int = 0
     estimates: dict[int, np.ndarray] = field(default_factory=dict)
@@ -210,8 +209,6 @@ class Pipeline:
         st.stage_seconds["frontend"] += time.perf_counter() - t0
         if odom.extras.get("skipped"):
             st.skipped_frames += 1
-        if odom.extras.get("lost"):
-            st.lost_frames += 1
         if odom.extras.get("degenerate"):
             st.degenerate_frames += 1
         st.add_diagnostics(odom.extras)
