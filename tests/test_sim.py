@@ -317,6 +317,27 @@ def test_cache_reuses_and_formats(tmp_path):
     assert len(scans) == 2 and scans[1].stamp == pytest.approx(STAMP0 + 0.1)
 
 
+def test_cache_key_covers_only_the_scene_own_sources(tmp_path, monkeypatch):
+    from slam.sim import cache, registry
+
+    assert "urban.py" not in registry.scene_sources("corridor")
+    assert "registry.py" not in registry.scene_sources("urban")
+    a = ensure_sequence("corridor", frames=2, cache_dir=tmp_path, pedestrians=False)
+    key = a.bag.parent.name
+    # a new scene in its own module leaves the corridor's key and its sequence alone
+    extra = registry.SceneEntry("slam.sim.urban:urban", ("urban.py",))
+    monkeypatch.setitem(registry.SCENES, "extra", extra)
+    assert cache.sequence_key("corridor", frames=2, fmt="ros1", seed=0, pedestrians=False) == key
+    gone = tmp_path / "extra-2-0-0000000000"
+    gone.mkdir()
+    (gone / "cache.json").write_text('{"digest": "old", "scene": "extra"}')
+    assert cache.prune_stale(tmp_path) == [gone]
+    assert a.bag.exists()
+    # a change to a source the scene uses changes its key
+    monkeypatch.setattr(registry, "CORE_SOURCES", registry.CORE_SOURCES + ("urban.py",))
+    assert cache.sequence_key("corridor", frames=2, fmt="ros1", seed=0, pedestrians=False) != key
+
+
 def test_simulate_rejects_bad_arguments(tmp_path):
     with pytest.raises(InputError):
         simulate("corridor", tmp_path, frames=100000)

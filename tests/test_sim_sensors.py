@@ -11,7 +11,7 @@ from slam.io.bags import BagSource
 from slam.io.info import describe
 from slam.sim import SENSORS, LidarModel, ensure_sequence, get_sensor, make_scene, simulate
 from slam.sim.cache import sequence_key
-from slam.sim.scenes import scene_sensor
+from slam.sim.registry import scene_sensor
 from slam.sim.sensors import hdl64_elevations
 from slam.sim.simulate import effective_model, full_frames
 from slam.sim.trajectory import route_trajectory

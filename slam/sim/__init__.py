@@ -7,8 +7,8 @@ demo and of every end-to-end test.
 
 from slam.sim.cache import SIM_VERSION, cache_root, ensure_sequence
 from slam.sim.lidar import LidarModel, ScanTruth, simulate_scan, simulate_scan_truth
+from slam.sim.registry import SCENES
 from slam.sim.scene import Pedestrian, Scene
-from slam.sim.scenes import SCENES
 from slam.sim.sensors import DEFAULT_SENSOR, SENSORS, SensorSpec, get_sensor
 from slam.sim.simulate import (
     SimResult,

@@ -2,8 +2,10 @@
 
 Location: ``$SLAM_CACHE/sim`` if SLAM_CACHE is set, else ``~/.cache/pyslam-graph/sim``.
 A sequence lives in ``<scene>-<frames|full>-<seed>-<hash>``; the hash covers the
-arguments, the sensor model, :data:`SIM_VERSION` and the simulator's source, so any
-change regenerates; stale sequences are pruned when a new one is written. Written into a
+arguments, the sensor model, :data:`SIM_VERSION` and the source files that shape that
+scene (:func:`slam.sim.registry.scene_sources`), so any change to them regenerates it and
+a new scene or a change to another scene's module does not; stale sequences are pruned
+when a new one is written. Written into a
 temporary folder and renamed: readers never see a half-written sequence, and concurrent
 writers are safe.
 """
@@ -18,7 +20,9 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from slam.errors import InputError
 from slam.sim.lidar import LidarModel
+from slam.sim.registry import SCENES, scene_sources
 from slam.sim.sensors import DEFAULT_SENSOR, get_sensor
 from slam.sim.simulate import (
     META_NAME,
@@ -42,33 +46,37 @@ def cache_root() -> Path:
 _STAMP_NAME = "cache.json"
 
 
-def _code_digest() -> str:
-    return f"{SIM_VERSION}-{_source_digest()}"
+def _code_digest(scene: str) -> str:
+    return f"{SIM_VERSION}-{_source_digest(scene)}"
 
 
 def prune_stale(root: Path) -> list[Path]:
-    """Remove cached sequences made by another simulator version/source; returns them."""
+    """Remove cached sequences made by another simulator version or another source of
+    their own scene (or of a scene that no longer exists); returns them. Sequences of
+    other scenes whose sources did not change are kept."""
     removed = []
-    current = _code_digest()
     for folder in root.iterdir():
         stamp = folder / _STAMP_NAME
         if folder.name.startswith(".") or not stamp.is_file():
             continue
         try:
-            digest = json.loads(stamp.read_text()).get("digest")
+            meta = json.loads(stamp.read_text())
         except (OSError, ValueError):
-            digest = None
-        if digest != current:
+            meta = {}
+        scene = meta.get("scene")
+        if scene not in SCENES or meta.get("digest") != _code_digest(scene):
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
     return removed
 
 
-def _source_digest() -> str:
+def _source_digest(scene: str) -> str:
+    """sha1 of the slam/sim files that shape ``scene`` (:func:`scene_sources`)."""
     h = hashlib.sha1()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        h.update(path.name.encode())
-        h.update(path.read_bytes())
+    here = Path(__file__).parent
+    for name in sorted(scene_sources(scene)):
+        h.update(name.encode())
+        h.update((here / name).read_bytes())
     return h.hexdigest()
 
 
@@ -86,9 +94,11 @@ def sequence_key(
     (the scene's version of ``sensor`` when ``model`` is None). Sensors other than the
     default VLP-16 are named in the folder and the key (their driver layout differs)."""
     get_sensor(sensor)
+    if scene not in SCENES:
+        raise InputError(f"unknown scene {scene!r}; choose one of {sorted(SCENES)}")
     spec = {
         "version": SIM_VERSION,
-        "source": _source_digest(),
+        "source": _source_digest(scene),
         "scene": scene,
         "frames": frames,
         "fmt": fmt,
@@ -149,7 +159,7 @@ def ensure_sequence(
             sensor=sensor,
             progress=progress,
         )
-        (tmp / _STAMP_NAME).write_text(json.dumps({"digest": _code_digest()}))
+        (tmp / _STAMP_NAME).write_text(json.dumps({"digest": _code_digest(scene), "scene": scene}))
         if final.exists() and not (final / META_NAME).is_file():
             shutil.rmtree(final, ignore_errors=True)  # a broken leftover
         try:

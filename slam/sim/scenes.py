@@ -16,9 +16,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.sim import geometry as g
-from slam.sim.lidar import LidarModel
+from slam.sim.registry import scene_sensor
 from slam.sim.scene import Pedestrian, Scene
-from slam.sim.sensors import DEFAULT_SENSOR, get_sensor
 from slam.sim.trajectory import closed_curve_trajectory, rounded_rectangle
 
 SENSOR_HEIGHT = 0.5  # m above the ground (ground robot)
@@ -644,30 +643,3 @@ def _bench(b: g.MeshBuilder, xy, yaw: float, z0: float) -> None:
     back = xy + 0.2 * np.array([-np.sin(yaw), np.cos(yaw)])
     b.add(g.box((back[0], back[1], z0 + 0.6), (1.8, 0.06, 0.4), yaw, g.WOOD))
     b.add(g.box((xy[0], xy[1], z0 + 0.14), (1.6, 0.4, 0.48), yaw, g.METAL))
-
-
-# Scenes simulated with the realism error sources (calibration, noise growing with range,
-# mixed pixels) of :meth:`LidarModel.realistic`, whatever the sensor.
-REALISTIC_SCENES = frozenset({"park", "urban"})
-
-
-def scene_sensor(name: str, sensor: str = DEFAULT_SENSOR) -> LidarModel:
-    """The LiDAR model a scene is simulated with by default: the named ``sensor`` (see
-    :mod:`slam.sim.sensors`), with realistic errors for ``park`` and ``urban``, ideal
-    otherwise (for the VLP-16: ``LidarModel.realistic()`` / ``LidarModel()``)."""
-    return get_sensor(sensor).model(realistic=name in REALISTIC_SCENES)
-
-
-def urban(seed: int = 0, **kwargs) -> Scene:
-    """The car-speed urban drive (see :func:`slam.sim.urban.urban`)."""
-    from slam.sim.urban import urban as build
-
-    return build(seed, **kwargs)
-
-
-SCENES: dict[str, Callable[..., Scene]] = {
-    "corridor": corridor,
-    "plaza": plaza,
-    "park": park,
-    "urban": urban,
-}

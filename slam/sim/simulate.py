@@ -19,8 +19,8 @@ import numpy as np
 from slam.errors import InputError
 from slam.io.trajectory import read_tum, write_tum
 from slam.sim.lidar import LidarModel, ScanTruth, simulate_scan_truth
+from slam.sim.registry import SCENES, scene_sensor
 from slam.sim.scene import Scene
-from slam.sim.scenes import SCENES, scene_sensor
 from slam.sim.sensors import DEFAULT_SENSOR, SensorSpec, driver_order, get_sensor
 from slam.types import Scan
 
@@ -67,7 +67,7 @@ def make_scene(scene: str, *, seed: int = 0, pedestrians: bool = True) -> Scene:
     """Build a named scene; InputError lists the valid names."""
     if scene not in SCENES:
         raise InputError(f"unknown scene {scene!r}; choose one of {sorted(SCENES)}")
-    return SCENES[scene](seed, pedestrians=pedestrians)
+    return SCENES[scene].load()(seed, pedestrians=pedestrians)
 
 
 def effective_model(

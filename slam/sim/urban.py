@@ -18,8 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from slam.sim import geometry as g
+from slam.sim.registry import scene_sensor
 from slam.sim.scene import Pedestrian, Scene
-from slam.sim.scenes import _facade, _to_world, scene_sensor
+from slam.sim.scenes import _facade, _to_world
 from slam.sim.trajectory import lane_route, route_trajectory
 
 CAR_SENSOR_HEIGHT = 1.8  # m: roof-mounted LiDAR (KITTI's HDL-64 is at 1.73 m)
