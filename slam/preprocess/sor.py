@@ -64,8 +64,11 @@ class Neighbourhoods:
     dist: np.ndarray
 
 
-def neighbourhoods(xyz: np.ndarray, k: int) -> Neighbourhoods:
-    """k nearest other points of every point: one KD-tree build and one batch query."""
+def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -> Neighbourhoods:
+    """k nearest other points of every point: one KD-tree build and one batch query.
+
+    ring: (N,) beam index of each point (``scan.ring``) when known; reserved for the exact
+    range-image search (same result as the KD-tree)."""
     k_eff = min(k, len(xyz) - 1)
     idx, dist = knn(xyz, xyz, k_eff + 1)
     return Neighbourhoods(idx, dist[:, 1:])
@@ -168,11 +171,20 @@ def weighted_sor_terms(
     return SorTerms(d, mu, sigma, rho, theta)
 
 
-def apply_sor(xyz: np.ndarray, cfg: SorConfig, nbh: Neighbourhoods | None = None) -> np.ndarray:
+def apply_sor(
+    xyz: np.ndarray,
+    cfg: SorConfig,
+    nbh: Neighbourhoods | None = None,
+    *,
+    ring: np.ndarray | None = None,
+) -> np.ndarray:
     """Keep-mask from the configured method; all True when ``cfg.enabled`` is False.
-    nbh: the k-NN of ``xyz`` (``neighbourhoods(xyz, cfg.k)``) when the caller keeps it."""
+    nbh: the k-NN of ``xyz`` (``neighbourhoods(xyz, cfg.k)``) when the caller keeps it.
+    ring: (N,) beam index (``scan.ring``), passed on to ``neighbourhoods`` when nbh is None."""
     if not cfg.enabled:
         return np.ones(len(xyz), dtype=bool)
+    if nbh is None and len(xyz) > 2:
+        nbh = neighbourhoods(_check_xyz(xyz), cfg.k, ring=ring)
     dist = None if nbh is None else nbh.dist
     if cfg.method == "classic":
         return classic_sor(xyz, cfg.k, cfg.alpha, dist=dist)
