@@ -1,0 +1,123 @@
+"""Where a frame's time goes: every stage of full SLAM per frame, on 16-beam, 64-beam and
+real KITTI-raw scans, next to small_gicp's own odometry measured in the same run.
+
+    .venv/bin/python benchmarks/profile_stages.py [--frames 150] [--config improved_floam_loop]
+        [--datasets corridor park urban-hdl64 kitti-raw] [--markdown]
+
+Each dataset is run through the whole pipeline (front end, factor plugins, back end) with
+the recipe given. Front-end stages are the front end's own timings (``*_ms`` extras, mean
+per frame); factor plugins and the back end are the pipeline's stage clocks, given per
+frame and per keyframe; the loop plugin's own detect/verify clocks when it reports them.
+``frames/s`` is the whole pipeline; ``x small_gicp`` divides it by small_gicp's VGICP
+scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans, timed
+right after it on the same machine state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from bench_frontends import small_gicp_odometry  # noqa: E402
+
+from slam.config import load_config  # noqa: E402
+from slam.io.folders import cloud_files, read_cloud  # noqa: E402
+from slam.io.source import open_source  # noqa: E402
+from slam.pipeline import Pipeline  # noqa: E402
+from slam.sim.cache import ensure_sequence  # noqa: E402
+from slam.types import Scan  # noqa: E402
+
+KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_drive"
+DATASETS = ("corridor", "park", "urban-hdl64", "kitti-raw")
+
+
+def load_scans(name: str, frames: int, tmp: Path) -> list[Scan]:
+    """The scans of a dataset: a cached simulated sequence or the real KITTI-raw drive."""
+    if name == "kitti-raw":
+        archive = KITTI / "data_1.tar.xz"
+        if not archive.is_file():
+            raise SystemExit(f"missing {archive}: the shared data folder must sit beside the repo")
+        with tarfile.open(archive, "r:xz") as tar:
+            tar.extractall(tmp, filter="data")
+        files = cloud_files(tmp / "data_1")[:frames]
+        return [read_cloud(f, index=i, stamp=0.1 * i) for i, f in enumerate(files)]
+    scene, _, sensor = name.partition("-")
+    sim = ensure_sequence(scene, frames=frames, sensor=sensor or "vlp16")
+    return [s for s in open_source(sim.bag) if isinstance(s, Scan)][:frames]
+
+
+def profile(scans: list[Scan], config: str) -> dict[str, float]:
+    """Run the pipeline over ``scans``; ms per frame of every stage, frames/s, keyframes."""
+    pipe = Pipeline(load_config(config))
+    t0 = time.perf_counter()
+    state = pipe.run(scans)
+    wall = time.perf_counter() - t0
+    n, n_kf = max(state.frames, 1), max(len(state.keyframes), 1)
+    row: dict[str, float] = {}
+    for key, value in sorted(state.diagnostic_means().items()):
+        if key.endswith("_ms"):
+            row[f"frontend {key[:-3]}"] = value
+    for stage, seconds in sorted(state.stage_seconds.items()):
+        if stage == "frontend":
+            continue
+        row[f"{stage} (per frame)"] = 1e3 * seconds / n
+        row[f"{stage} (per keyframe)"] = 1e3 * seconds / n_kf
+    for source in pipe.factor_sources:
+        stats = getattr(source.plugin, "stats", None)
+        for key, value in (stats() if callable(stats) else {}).items():
+            if key.endswith("_ms"):
+                row[f"{source.name} {key[:-3]}"] = float(value)
+    row["pipeline total (per frame)"] = 1e3 * wall / n
+    row["frames/s"] = n / wall
+    row["keyframes"] = float(len(state.keyframes))
+    row["points/scan"] = float(np.mean([len(s) for s in scans]))
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--config", default="improved_floam_loop")
+    ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=DATASETS)
+    ap.add_argument("--markdown", action="store_true", help="print a README table")
+    args = ap.parse_args()
+    columns: dict[str, dict[str, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.datasets:
+            scans = load_scans(name, args.frames, Path(tmp))
+            row = profile(scans, args.config)
+            t = time.perf_counter()
+            small_gicp_odometry(scans)
+            ref_fps = len(scans) / (time.perf_counter() - t)
+            row["small_gicp odometry frames/s"] = ref_fps
+            row["x small_gicp"] = row["frames/s"] / ref_fps
+            columns[f"{name} ({len(scans)})"] = row
+            print(f"{name}: {row['frames/s']:.1f} frames/s, x{row['x small_gicp']:.3f}", flush=True)
+    stages = list(dict.fromkeys(k for row in columns.values() for k in row))
+    names = list(columns)
+    print()
+    print(f"ms per frame unless stated; config {args.config}")
+    if args.markdown:
+        print("| stage | " + " | ".join(names) + " |")
+        print("|---|" + "---:|" * len(names))
+    else:
+        print(f"{'stage':44s}" + "".join(f"{n:>22s}" for n in names))
+    for stage in stages:
+        cells = [columns[n].get(stage) for n in names]
+        text = ["-" if c is None else f"{c:.2f}" for c in cells]
+        if args.markdown:
+            print(f"| {stage} | " + " | ".join(text) + " |")
+        else:
+            print(f"{stage:44s}" + "".join(f"{c:>22s}" for c in text))
+
+
+if __name__ == "__main__":
+    main()
