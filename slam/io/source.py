@@ -11,7 +11,8 @@ from slam.types import Scan, SkippedMessage
 
 ACCEPTED = (
     "a ROS1 .bag file, a ROS2 bag folder (metadata.yaml with .db3 or .mcap files), "
-    "an .mcap file, a KITTI sequence folder (velodyne/*.bin) or a folder of .pcd/.ply files"
+    "an .mcap file, a KITTI sequence folder (velodyne/*.bin), a folder of .pcd/.ply files "
+    "or a CARMEN 2D laser log (.clf, .clf.bz2)"
 )
 
 
@@ -41,12 +42,14 @@ class ScanSource(Protocol):
 
 
 def open_source(path: str | Path, topic: str | None = None) -> ScanSource:
-    """The reader for ``path``: bag (ROS1/ROS2 db3/mcap), KITTI folder or PCD/PLY folder.
+    """The reader for ``path``: bag (ROS1/ROS2 db3/mcap), KITTI folder, PCD/PLY folder or
+    CARMEN log.
 
     ``topic`` only applies to bags (ignored otherwise). Raises InputError for paths of no
     accepted kind and TopicError when the topic is missing or ambiguous.
     """
     from slam.io.bags import BagSource, is_bag_path
+    from slam.io.carmen import CarmenSource, is_carmen_path
     from slam.io.folders import FolderSource, is_cloud_dir
     from slam.io.kitti import KittiSource, is_kitti_dir
 
@@ -55,6 +58,8 @@ def open_source(path: str | Path, topic: str | None = None) -> ScanSource:
         raise InputError(f"input not found: {path}. Accepted: {ACCEPTED}")
     if is_bag_path(path):
         return BagSource(path, topic)
+    if is_carmen_path(path):
+        return CarmenSource(path)
     if is_kitti_dir(path):
         return KittiSource(path)
     if is_cloud_dir(path):

@@ -1,0 +1,260 @@
+"""CARMEN laser logs (``.clf``, ``.clf.bz2``, ``.log``): the 2D laser recordings of real
+robots (Intel Research Lab, FR079, MIT-CSAIL in ``../shared/data/laser2d``).
+
+Each ``FLASER`` line is one front-laser scan::
+
+    FLASER n r_1 .. r_n  x y theta  odom_x odom_y odom_theta  timestamp host logger_timestamp
+
+ranges in metres over a 180 deg fan in front of the robot, starting at -90 deg (the
+robot's right); ``x y theta`` is the laser pose and ``odom_*`` the robot's wheel odometry
+(m, rad). A scan becomes a :class:`Scan` in the laser frame (x forward, y left, z = 0,
+ring 0): readings at the sensor's maximum range (no return) or below ``min_range`` are
+dropped. ``ROBOTLASER1`` lines (``start_angle fov resolution max_range ...``) are read the
+same way when a log has no FLASER. Other lines (ODOM, PARAM, comments) are ignored. A
+damaged line costs that scan (a :class:`SkippedMessage`), not the run. Logs whose clock
+jumps (Intel: single stamps ~1 s ahead, so the next ones look 631 times out of order) keep
+file order: the stamps outside the longest increasing run are interpolated between their
+neighbours in it, with a note.
+"""
+
+from __future__ import annotations
+
+import bisect
+import bz2
+import gzip
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slam.errors import InputError
+from slam.io.skips import CORRUPT_MESSAGE, EMPTY_MESSAGE
+from slam.types import Scan, SkippedMessage
+
+SUFFIXES = (".clf", ".clf.bz2", ".clf.gz", ".carmen", ".carmen.bz2", ".log.bz2", ".log")
+MIN_RANGE = 0.02  # m: below this a reading is a dropout
+NO_RETURN_MARGIN = 0.05  # m: readings within this of the log's largest are "no return"
+
+
+@dataclass(frozen=True)
+class LaserRecord:
+    """One laser line: ranges (m), beam angles (rad, laser frame), laser pose and wheel
+    odometry (x, y, theta in m, m, rad), stamp (s), max range (m; inf when unknown)."""
+
+    ranges: np.ndarray
+    angles: np.ndarray
+    pose: np.ndarray
+    odom: np.ndarray
+    stamp: float
+    max_range: float
+
+
+def fan_angles(n: int) -> np.ndarray:
+    """Beam angles (rad) of an ``n``-beam 180 deg CARMEN fan starting at -90 deg: 181/361
+    beams include both ends (1 / 0.5 deg), 180/360 beams step 180/n deg."""
+    step = np.pi / (n - 1) if n % 2 == 1 else np.pi / n
+    return -np.pi / 2 + step * np.arange(n)
+
+
+def is_carmen_path(path: Path) -> bool:
+    """A file named like a CARMEN log (``*.clf``, ``*.clf.bz2``, ``*.carmen``, ``*.log``)."""
+    name = path.name.lower()
+    return path.is_file() and any(name.endswith(s) for s in SUFFIXES)
+
+
+def _open_text(path: Path):
+    name = path.name.lower()
+    if name.endswith(".bz2"):
+        return bz2.open(path, "rt", errors="replace")
+    if name.endswith(".gz"):
+        return gzip.open(path, "rt", errors="replace")
+    return open(path, errors="replace")
+
+
+def parse_flaser(fields: list[str]) -> LaserRecord:
+    """``FLASER`` fields (without the tag). Raises ValueError on a damaged line."""
+    n = int(fields[0])
+    if n <= 1 or len(fields) < n + 8:
+        raise ValueError(f"FLASER with {n} ranges has only {len(fields) - 1} values")
+    values = np.asarray(fields[1 : n + 8], dtype=np.float64)
+    ranges = values[:n]
+    pose, odom, stamp = values[n : n + 3], values[n + 3 : n + 6], float(values[n + 6])
+    return LaserRecord(ranges, fan_angles(n), pose, odom, stamp, np.inf)
+
+
+def parse_robotlaser(fields: list[str]) -> LaserRecord:
+    """``ROBOTLASER1`` fields (without the tag): type start_angle fov resolution max_range
+    accuracy remission_mode n r_1..r_n n_rem rem_1.. laser_x y theta robot_x y theta ...
+    timestamp host logger_timestamp."""
+    start, _fov, res, max_range = (float(v) for v in fields[1:5])
+    n = int(fields[7])
+    ranges = np.asarray(fields[8 : 8 + n], dtype=np.float64)
+    n_rem = int(fields[8 + n])
+    rest = fields[9 + n + n_rem :]
+    pose = np.asarray(rest[0:3], dtype=np.float64)
+    odom = np.asarray(rest[3:6], dtype=np.float64)
+    stamp = float(rest[-3])
+    if len(ranges) != n or len(pose) != 3 or len(odom) != 3:
+        raise ValueError("ROBOTLASER1 line is cut short")
+    return LaserRecord(ranges, start + res * np.arange(n), pose, odom, stamp, max_range)
+
+
+PARSERS = {"FLASER": parse_flaser, "ROBOTLASER1": parse_robotlaser}
+
+
+def _stamp_field(rest: str) -> float:
+    """The ipc timestamp of a laser line (third field from the end); NaN when damaged."""
+    parts = rest.split()
+    try:
+        return float(parts[-3])
+    except (ValueError, IndexError):
+        return np.nan
+
+
+def repaired_stamps(stamps: np.ndarray) -> np.ndarray:
+    """``stamps`` made strictly increasing in file order: the longest strictly increasing
+    subsequence is kept, every other stamp (a clock jump, a NaN) is interpolated linearly
+    in line index between its kept neighbours (extrapolated at the ends)."""
+    n = len(stamps)
+    if n == 0:
+        return stamps.copy()
+    idx = np.flatnonzero(np.isfinite(stamps))
+    tails: list[float] = []  # patience sorting: smallest tail of each run length
+    tail_at: list[int] = []
+    parent = np.full(n, -1)
+    for i in idx:
+        k = bisect.bisect_left(tails, stamps[i])
+        if k == len(tails):
+            tails.append(stamps[i])
+            tail_at.append(i)
+        else:
+            tails[k], tail_at[k] = stamps[i], i
+        parent[i] = tail_at[k - 1] if k else -1
+    keep = []
+    i = tail_at[-1] if tail_at else -1
+    while i >= 0:
+        keep.append(i)
+        i = parent[i]
+    keep = np.array(keep[::-1], dtype=int)
+    out = stamps.copy()
+    if len(keep) < 2:  # no usable clock: 10 Hz from the first stamp
+        start = stamps[keep[0]] if len(keep) else 0.0
+        return start + 0.1 * (np.arange(n) - (keep[0] if len(keep) else 0))
+    lost = np.setdiff1d(np.arange(n), keep)
+    slope = (stamps[keep[-1]] - stamps[keep[0]]) / (keep[-1] - keep[0])
+    inside = (lost > keep[0]) & (lost < keep[-1])
+    out[lost[inside]] = np.interp(lost[inside], keep, stamps[keep])
+    out[lost[~inside]] = stamps[keep[0]] + slope * (lost[~inside] - keep[0])
+    return out
+
+
+def records_to_scan(rec: LaserRecord, index: int, max_range: float) -> Scan:
+    """The scan of one record: valid readings as points in the laser frame (z = 0)."""
+    limit = min(max_range, rec.max_range) - NO_RETURN_MARGIN
+    keep = np.isfinite(rec.ranges) & (rec.ranges > MIN_RANGE) & (rec.ranges < limit)
+    r, a = rec.ranges[keep], rec.angles[keep]
+    xyz = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r)])
+    return Scan(
+        stamp=rec.stamp,
+        xyz=xyz,
+        ring=np.zeros(len(r), dtype=np.int16),
+        index=index,
+    )
+
+
+class CarmenSource:
+    """Scans of a CARMEN log in file order (the laser lines of one kind: FLASER, or
+    ROBOTLASER1 when the log has no FLASER). After an iteration, ``odometry`` (N, 3) holds
+    the wheel odometry and ``laser_poses`` the logged laser poses (x, y, theta) of every
+    laser line read, in order."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise InputError(f"CARMEN log not found: {self.path}")
+        self.topic: str | None = None
+        self.notes: list[str] = []
+        self._tag, self._count, self._max_seen = self._survey()
+        self.description = f"CARMEN log {self.path} ({self._count} {self._tag} scans)"
+        if self._repaired:
+            self._note(
+                f"{self._repaired} laser stamps out of order in the log (a clock jump); "
+                "those scans are kept in file order, stamped between their neighbours"
+            )
+        self.odometry = np.zeros((0, 3))
+        self.laser_poses = np.zeros((0, 3))
+
+    def _survey(self) -> tuple[str, int, float]:
+        """Which laser tag the log holds, how many scans, and its largest reading (the
+        sensor's "no return" value when the log has no max-range parameter)."""
+        counts = dict.fromkeys(PARSERS, 0)
+        stamps: dict[str, list[float]] = {tag: [] for tag in PARSERS}
+        largest = 0.0
+        try:
+            with _open_text(self.path) as fh:
+                for line in fh:
+                    tag, _, rest = line.partition(" ")
+                    if tag in counts:
+                        counts[tag] += 1
+                        stamps[tag].append(_stamp_field(rest))
+                        if tag == "FLASER" and counts[tag] <= 200:
+                            parts = rest.split()
+                            try:
+                                n = int(parts[0])
+                                largest = max(largest, max(float(v) for v in parts[1 : n + 1]))
+                            except (ValueError, IndexError):
+                                pass
+        except (OSError, EOFError, UnicodeError) as exc:
+            raise InputError(f"cannot read CARMEN log {self.path}: {exc}") from exc
+        tag = "FLASER" if counts["FLASER"] else "ROBOTLASER1"
+        if counts[tag] == 0:
+            raise InputError(
+                f"{self.path}: no FLASER or ROBOTLASER1 lines; is it a CARMEN laser log?"
+            )
+        raw = np.asarray(stamps[tag], dtype=np.float64)
+        self._stamps = repaired_stamps(raw)
+        self._repaired = int(np.sum(self._stamps != raw))
+        return tag, counts[tag], largest
+
+    def __len__(self) -> int:
+        return self._count
+
+    def _note(self, text: str) -> None:
+        if text not in self.notes:
+            self.notes.append(text)
+
+    def __iter__(self) -> Iterator[Scan | SkippedMessage]:
+        parse = PARSERS[self._tag]
+        # SICK scanners report "no return" as their maximum (80-82 m in these logs)
+        max_range = self._max_seen if self._max_seen > 50.0 else np.inf
+        odom, poses = [], []
+        index = 0
+        try:
+            with _open_text(self.path) as fh:
+                for line_no, line in enumerate(fh, start=1):
+                    tag, _, rest = line.partition(" ")
+                    if tag != self._tag:
+                        continue
+                    where = f"{self.path}:{line_no}"
+                    try:
+                        rec = parse(rest.split())
+                    except (ValueError, IndexError) as exc:
+                        yield SkippedMessage(index, CORRUPT_MESSAGE, f"{where}: {exc}")
+                        index += 1
+                        continue
+                    scan = records_to_scan(rec, index, max_range)
+                    if index < len(self._stamps) and np.isfinite(self._stamps[index]):
+                        scan.stamp = float(self._stamps[index])
+                    odom.append(rec.odom)
+                    poses.append(rec.pose)
+                    index += 1
+                    if len(scan) == 0:
+                        yield SkippedMessage(scan.index, EMPTY_MESSAGE, f"{where}: no valid range")
+                        continue
+                    yield scan
+        except (OSError, EOFError) as exc:  # a truncated .bz2: stop like a truncated bag
+            raise InputError(f"{self.path} is cut short after {index} scans: {exc}") from exc
+        finally:
+            self.odometry = np.asarray(odom).reshape(-1, 3)
+            self.laser_poses = np.asarray(poses).reshape(-1, 3)

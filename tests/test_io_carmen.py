@@ -1,0 +1,97 @@
+"""CARMEN 2D laser logs: the real Intel / FR079 / MIT-CSAIL logs and damaged lines."""
+
+from __future__ import annotations
+
+import bz2
+
+import numpy as np
+import pytest
+from shared_data import shared_path
+
+from slam.errors import InputError
+from slam.io.carmen import CarmenSource, fan_angles, repaired_stamps
+from slam.io.source import open_source
+from slam.types import Scan, SkippedMessage
+
+
+def test_fan_angles_cover_180_degrees():
+    assert np.degrees(fan_angles(180))[[0, 1, -1]] == pytest.approx([-90, -89, 89])
+    assert np.degrees(fan_angles(361))[[0, 1, -1]] == pytest.approx([-90, -89.5, 90])
+    assert np.degrees(fan_angles(360))[[0, 1, -1]] == pytest.approx([-90, -89.5, 89.5])
+
+
+def _first(path, n: int) -> list[Scan]:
+    out = []
+    for item in open_source(path):
+        out.append(item)
+        if len(out) == n:
+            break
+    return out
+
+
+@pytest.mark.parametrize(
+    ("name", "beams", "span_m"),
+    [("intel", 180, 20.0), ("fr079", 360, 15.0), ("mit-csail", 361, 30.0)],
+)
+def test_real_logs_give_planar_scans(name, beams, span_m):
+    path = shared_path("laser2d", f"{name}.clf.bz2")
+    scans = _first(path, 50)
+    assert all(isinstance(s, Scan) for s in scans)
+    first = scans[0]
+    assert 0.5 * beams < len(first) <= beams  # no-return readings (~81.9 m) dropped
+    assert np.all(first.xyz[:, 2] == 0) and first.ring is not None and not first.ring.any()
+    r = np.linalg.norm(first.xyz[:, :2], axis=1)
+    assert r.max() < 80.0 and r.min() > 0.02 and np.ptp(first.xyz[:, 1]) < 2 * span_m + 60
+    stamps = np.array([s.stamp for s in scans])
+    assert np.all(np.diff(stamps) > 0) and np.median(np.diff(stamps)) < 0.5
+
+
+def test_intel_log_counts_every_scan_and_its_odometry():
+    src = CarmenSource(shared_path("laser2d", "intel.clf.bz2"))
+    assert len(src) == 13631
+    stamps = np.array([s.stamp for s in src])
+    assert len(stamps) == 13631 and src.odometry.shape == (13631, 3)
+    # the log's clock jumps ahead at single lines (631 stamps then look out of order): all
+    # scans are kept, in file order, with increasing stamps at the log's 5-12 Hz
+    assert np.all(np.diff(stamps) > 0) and 0.05 < np.median(np.diff(stamps)) < 0.25
+    assert any("stamps out of order" in note for note in src.notes), src.notes
+    # the robot drives a ~ 30 x 30 m lab: odometry spans tens of metres, not kilometres
+    assert 10.0 < np.ptp(src.odometry[:, 0]) < 100.0
+
+
+def test_repaired_stamps_interpolate_a_clock_jump():
+    raw = np.array([0.0, 0.1, 0.2, 1.3, 0.4, 0.5, np.nan, 0.7, 0.8])
+    fixed = repaired_stamps(raw)
+    assert fixed == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8])
+    assert repaired_stamps(np.array([5.0, 1.0, 2.0])) == pytest.approx([0.0, 1.0, 2.0])
+
+
+def test_damaged_line_costs_one_scan(tmp_path):
+    good = "FLASER 4 1.0 2.0 3.0 4.0 0 0 0 0 0 0 {t} host {t}\n"
+    text = "# comment\nPARAM x 1\n" + good.format(t=1.0) + "FLASER 4 1.0 2.0\n"
+    text += good.format(t=1.2) + "FLASER 4 90 90 90 90 0 0 0 0 0 0 1.3 h 1.3\n"
+    path = tmp_path / "small.clf"
+    path.write_text(text)
+    items = list(open_source(path))
+    kinds = [type(i).__name__ for i in items]
+    assert kinds == ["Scan", "SkippedMessage", "Scan", "SkippedMessage"]
+    assert isinstance(items[1], SkippedMessage) and items[1].reason == "corrupt message"
+    # every reading of the last line is the log's largest (a SICK's "no return" value)
+    assert items[3].reason == "empty message"
+    assert len(items[0]) == 4 and items[2].stamp == 1.2
+
+
+def test_truncated_bz2_log_stops_with_input_error(tmp_path):
+    raw = bz2.compress(("FLASER 2 1.0 1.0 0 0 0 0 0 0 5.0 h 5.0\n" * 5000).encode())
+    path = tmp_path / "cut.clf.bz2"
+    path.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(InputError, match="cannot read|cut short"):
+        for _ in CarmenSource(path):
+            pass
+
+
+def test_not_a_laser_log(tmp_path):
+    path = tmp_path / "odom_only.clf"
+    path.write_text("ODOM 0 0 0 0 0 0 1.0 h 1.0\n")
+    with pytest.raises(InputError, match="no FLASER"):
+        open_source(path)
