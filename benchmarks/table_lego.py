@@ -1,0 +1,352 @@
+"""Paper 001's Table 1 on the simulated building floor: APE of LeGO-LOAM, LeGO-LOAM-LPB,
+improved FLOAM and FLOAM, the ablation of LeGO-LOAM-LPB (each module off in turn) and the
+z error with and without the ground residual / ground factor; figures in the paper's
+style (Figure 11: trajectories against the truth in xy and xz; Figure 12: trajectory
+coloured by its error and the error over time).
+
+    .venv/bin/python benchmarks/table_lego.py [--scenes building building_loop] \\
+        [--configs lego_loam lego_lpb improved_floam floam] [--frames N] [--workers 2] \\
+        [--no-ablation] [--out runs/table_lego] [--figures docs/lego_lpb]
+
+Every run goes through the framework's own code: ``slam.run.run_one`` (what ``slam run
+--gt`` and ``slam compare`` do: trajectory, metrics.json, ape.json, plots, report) and
+``slam.eval`` (evo APE with SE(3) Umeyama alignment, the papers' table). Configs that are
+not installed yet are listed as missing and left out; the "% vs" rows use ``lego_loam``
+when it ran, else the first config that did.
+
+The ablation is read from the resolved ``lego_lpb`` recipe: every ``frontend`` section
+with ``enabled: true`` and every factor plugin other than ``prior`` / ``odometry`` that is
+enabled is switched off in turn (``--set <section>.enabled=false``), so the ablation
+follows the recipe as its modules land. The ground factor is also added to the other
+front ends (``--set factors.ground.enabled=true``) when a ``ground`` factor plugin exists.
+
+Writes ``<out>/table_lego.json`` (every row) and ``<out>/table_lego.md`` (the tables);
+prints the tables. Speed: frames/s of each run, and its ratio to ``floam``'s in the same
+session (the machine is shared, so only ratios are meaningful).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+MAIN_CONFIGS = ("lego_loam", "lego_lpb", "improved_floam", "floam")
+BASELINE = "lego_loam"
+FULL = "lego_lpb"
+COLUMNS = ("Max", "Mean", "Median", "RMSE", "Std")  # the paper's Table 1
+NOT_MODULES = ("prior", "odometry")
+
+
+# ----------------------------------------------------------------------------- jobs
+
+
+def available(name: str) -> bool:
+    """Whether the recipe ``name`` loads and its front end plugin is installed."""
+    from slam.config import load_config
+    from slam.errors import SlamError
+    from slam.pipeline import resolved_config
+
+    try:
+        resolved_config(load_config(name))
+    except (SlamError, ImportError, LookupError):
+        return False
+    return True
+
+
+def ablation_overrides(name: str = FULL) -> list[tuple[str, list[str]]]:
+    """(label, overrides) switching off, one at a time, each enabled module of the
+    resolved recipe: frontend sections with ``enabled: true`` and enabled factor plugins
+    other than prior / odometry."""
+    from slam.config import load_config
+    from slam.pipeline import resolved_config
+
+    resolved = resolved_config(load_config(name))
+    out = []
+
+    def walk(node: dict, path: list[str]) -> None:
+        for key, value in node.items():
+            if isinstance(value, dict):
+                if value.get("enabled") is True:
+                    out.append((f"no {'.'.join(path[1:] + [key])}", [
+                        ".".join(path + [key, "enabled"]) + "=false"
+                    ]))  # fmt: skip
+                walk(value, path + [key])
+
+    walk(resolved["frontend"], ["frontend"])
+    for fname, params in resolved["factors"].items():
+        if fname not in NOT_MODULES and params.get("enabled", True):
+            out.append((f"no {fname} factor", [f"factors.{fname}.enabled=false"]))
+    return out
+
+
+def has_factor(name: str) -> bool:
+    from slam import plugins
+
+    try:
+        plugins.load("slam.factors", name)
+    except Exception:  # noqa: BLE001 - any failure means: not installed
+        return False
+    return True
+
+
+def z_errors(res) -> dict:
+    """z error (m) of the matched poses: after the table's SE(3) alignment, and from the
+    start (the first estimate pose put on the first true pose: the accumulated z drift)."""
+    dz = res.est_poses[:, 2, 3] - res.gt_poses[:, 2, 3]
+    start = res.gt_poses[0] @ np.linalg.inv(res.est_poses[0])
+    dz0 = (start @ res.est_poses)[:, 2, 3] - res.gt_poses[:, 2, 3]
+    return {
+        "z_rmse": float(np.sqrt(np.mean(dz**2))),
+        "z_max": float(np.max(np.abs(dz))),
+        "z_drift_rmse": float(np.sqrt(np.mean(dz0**2))),
+        "z_drift_end": float(dz0[-1]),
+    }
+
+
+REUSE_KEYS = ("scene", "bag", "gt", "frames", "config", "overrides")
+
+
+def run_job(job: dict) -> dict:
+    """One config (+ overrides) on one sequence, in its own process; with ``reuse`` the
+    row of an earlier identical run in the same folder (``row.json``) is returned."""
+    from slam.config import load_config
+    from slam.run import run_one
+
+    saved = Path(job["out"]) / "row.json"
+    if job.get("reuse") and saved.is_file():
+        row = json.loads(saved.read_text())
+        if all(row.get(k) == job[k] for k in REUSE_KEYS) and "error" not in row:
+            return {**row, "reused": True}
+    config = load_config(job["config"], job["overrides"])
+    if job["frames"]:
+        config.source.max_frames = job["frames"]
+    out = Path(job["out"])
+    t0 = time.perf_counter()
+    try:
+        summary = run_one(Path(job["bag"]), config, out, gt=Path(job["gt"]), quiet=True)
+    except Exception as exc:  # noqa: BLE001 - one failing run must not end the table
+        return {**job, "error": f"{type(exc).__name__}: {exc}"}
+    wall = time.perf_counter() - t0
+    metrics = json.loads((out / "metrics.json").read_text())
+    res = summary.get("eval")
+    row = {
+        **job,
+        "frames_run": summary["frames"],
+        "keyframes": summary["keyframes"],
+        "stopped_by": summary["stopped_by"],
+        "fps": metrics.get("frames_per_second"),
+        "wall_s": round(wall, 1),
+        "loops": metrics.get("loops_closed"),
+        "lost": (metrics.get("frontend_counts") or {}).get("tracking_lost"),
+    }
+    if res is not None:
+        row.update(
+            ape=res.ape_trans,
+            ape_rot=res.ape_rot,
+            drift_pct=(res.kitti or {}).get("t_rel_pct"),
+            path_m=res.path_length,
+            **z_errors(res),
+        )
+    saved.write_text(json.dumps(row, indent=2, default=str))
+    return row
+
+
+def jobs_for(scene: str, seq, configs, frames, out: Path, ablation: bool) -> list[dict]:
+    base = {"scene": scene, "bag": str(seq.bag), "gt": str(seq.ground_truth), "frames": frames}
+    jobs = []
+
+    def add(label: str, config: str, overrides: list[str], group: str) -> None:
+        safe = label.replace(" ", "_").replace("/", "_")
+        jobs.append({**base, "label": label, "config": config, "overrides": overrides,
+                     "group": group, "out": str(out / scene / safe)})  # fmt: skip
+
+    for name in configs:
+        add(name, name, [], "main")
+    if ablation and FULL in configs:
+        for label, over in ablation_overrides(FULL):
+            add(f"{FULL} {label}", FULL, over, "ablation")
+    if has_factor("ground"):
+        for name in configs:
+            if name not in (FULL, BASELINE):
+                add(f"{name} + ground factor", name, ["factors.ground.enabled=true"], "ground")
+    return jobs
+
+
+# ----------------------------------------------------------------------------- tables
+
+
+def table1(rows: list[dict]) -> str:
+    """The paper's Table 1 (APE translation, m) with "% vs LeGO-LOAM" rows."""
+    from slam.eval.tables import ape_table, format_table
+
+    ok = {r["label"]: r["ape"] for r in rows if "ape" in r}
+    if not ok:
+        return "(no run finished)\n"
+    base = BASELINE if BASELINE in ok else next(iter(ok))
+    table = ape_table(ok, baseline=base)
+    table = [{k: v for k, v in row.items() if k in ("Config", *COLUMNS)} for row in table]
+    return format_table(table, "markdown", precision=3)
+
+
+def ablation_table(rows: list[dict]) -> str:
+    """RMSE / max of the full LPB and of each module switched off, change vs the full."""
+    full = next((r for r in rows if r["label"] == FULL and "ape" in r), None)
+    abl = [r for r in rows if r["group"] == "ablation"]
+    if full is None or not abl:
+        return "(no ablation: lego_lpb did not run)\n"
+    lines = [
+        "| Config | RMSE (m) | Max (m) | z RMSE (m) | RMSE vs full LPB |",
+        "|:---|---:|---:|---:|---:|",
+    ]
+    for r in [full, *abl]:
+        if "ape" not in r:
+            lines.append(f"| {r['label']} | failed: {r.get('error', r.get('stopped_by'))} | | | |")
+            continue
+        ch = (r["ape"]["rmse"] - full["ape"]["rmse"]) / full["ape"]["rmse"] * 100.0
+        lines.append(
+            f"| {r['label']} | {r['ape']['rmse']:.3f} | {r['ape']['max']:.3f} | "
+            f"{r['z_rmse']:.3f} | {'' if r is full else f'{ch:+.1f} %'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def z_table(rows: list[dict]) -> str:
+    """z error of every run: aligned RMSE / max, drift from the start (RMSE, at the end)."""
+    lines = [
+        "| Config | z RMSE (m) | z max (m) | z drift RMSE (m) | z drift at end (m) |",
+        "|:---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        if "z_rmse" in r:
+            lines.append(
+                f"| {r['label']} | {r['z_rmse']:.3f} | {r['z_max']:.3f} | "
+                f"{r['z_drift_rmse']:.3f} | {r['z_drift_end']:+.3f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def speed_table(rows: list[dict]) -> str:
+    ref = next((r for r in rows if r["label"] == "floam" and r.get("fps")), None)
+    lines = ["| Config | frames | keyframes | frames/s | x floam | lost | loops | KITTI drift % |",
+             "|:---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['label']} | failed: {r['error']} | | | | | | |")
+            continue
+        ratio = f"{r['fps'] / ref['fps']:.2f}" if ref and r.get("fps") else "-"
+        drift = r.get("drift_pct")
+        lines.append(
+            f"| {r['label']} | {r['frames_run']} | {r['keyframes']} | {r['fps'] or 0:.1f} | "
+            f"{ratio} | {r.get('lost') or 0} | {r.get('loops') or 0} | "
+            f"{'-' if drift is None else f'{drift:.2f}'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def figures(rows: list[dict], scene: str, fig_dir: Path) -> list[Path]:
+    """Figure 11 (xy / xz overlays of the main configs on the truth) and Figure 12 (per
+    config: trajectory coloured by APE, APE over time), with slam.eval.plots (evo)."""
+    from slam.eval.metrics import evaluate
+    from slam.eval.plots import (
+        ape_colormap_figure,
+        ape_figure,
+        ape_overlay_figure,
+        overlay_figure,
+        save_png,
+    )
+
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for r in rows:
+        if r["group"] == "main" and "ape" in r:
+            results[r["label"]] = evaluate(Path(r["out"]) / "trajectory.tum", Path(r["gt"]))
+    if not results:
+        return []
+    files = [save_png(overlay_figure(results, p), fig_dir / f"{scene}_overlay_{p}.png")
+             for p in ("xy", "xz")]  # fmt: skip
+    files.append(save_png(ape_overlay_figure(results), fig_dir / f"{scene}_ape_overlay.png"))
+    for name, res in results.items():
+        files.append(save_png(ape_colormap_figure(res), fig_dir / f"{scene}_{name}_heatmap.png"))
+        files.append(save_png(ape_figure(res), fig_dir / f"{scene}_{name}_ape_time.png"))
+    return files
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["building", "building_loop"])
+    ap.add_argument("--configs", nargs="+", default=list(MAIN_CONFIGS))
+    ap.add_argument("--frames", type=int, help="only the first N frames of each sequence")
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--no-ablation", action="store_true")
+    ap.add_argument(
+        "--reuse", action="store_true", help="keep the rows of identical runs already in --out"
+    )
+    ap.add_argument("--out", default="runs/table_lego")
+    ap.add_argument("--figures", help="folder for the paper-style figures (e.g. docs/lego_lpb)")
+    args = ap.parse_args(argv)
+
+    from slam.sim import ensure_sequence
+
+    configs = [c for c in args.configs if available(c)]
+    missing = [c for c in args.configs if c not in configs]
+    if missing:
+        print(f"not installed (left out): {', '.join(missing)}", file=sys.stderr)
+    out = Path(args.out)
+    jobs = []
+    for scene in args.scenes:
+        seq = ensure_sequence(scene)  # the whole route; --frames truncates the runs
+        jobs += jobs_for(scene, seq, configs, args.frames, out, not args.no_ablation)
+    for job in jobs:
+        job["reuse"] = args.reuse
+    print(f"{len(jobs)} runs on {args.workers} worker(s)", file=sys.stderr)
+    t0 = time.perf_counter()
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
+        rows = []
+        for row in pool.map(run_job, jobs):
+            rows.append(row)
+            status = (
+                row.get("error") or f"RMSE {row.get('ape', {}).get('rmse', float('nan')):.3f} m"
+            )
+            print(f"[{time.perf_counter() - t0:6.0f} s] {row['scene']} {row['label']}: {status}",
+                  file=sys.stderr, flush=True)  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table_lego.json").write_text(json.dumps(rows, indent=2, default=str))
+    text = [f"configs left out (not installed): {', '.join(missing) or 'none'}\n"]
+    for scene in args.scenes:
+        srows = [r for r in rows if r["scene"] == scene]
+        frames = srows[0]["frames_run"] if srows and "frames_run" in srows[0] else "?"
+        text.append(f"## {scene} ({frames} frames)\n")
+        text.append("APE (translation, m, SE(3)-aligned), the paper's Table 1:\n")
+        text.append(table1([r for r in srows if r["group"] == "main"]))
+        text.append("\nAblation of LeGO-LOAM-LPB (each module off in turn):\n")
+        text.append(ablation_table(srows))
+        text.append("\nz error (m):\n")
+        text.append(z_table(srows))
+        text.append("\nRuns:\n")
+        text.append(speed_table(srows))
+        if args.figures:
+            for f in figures(srows, scene, Path(args.figures)):
+                text.append(f"figure: {f}\n")
+        text.append("\n")
+    report = "\n".join(text)
+    (out / "table_lego.md").write_text(report)
+    print(report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
