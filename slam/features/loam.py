@@ -182,6 +182,11 @@ def _greedy_nms(key: np.ndarray, cand: np.ndarray, run: np.ndarray, w: int) -> n
     return ci[state[:m] == 1]
 
 
+def _sq_norm(v: np.ndarray) -> np.ndarray:
+    """Row-wise x^2 + y^2 + z^2 of (M, 3) summed left to right (the order of the kernels)."""
+    return (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]) + v[:, 2] * v[:, 2]
+
+
 def _spread(mask: np.ndarray, offsets: range, ring: np.ndarray) -> np.ndarray:
     """Mark i+o for every marked i and o in offsets, staying inside i's ring."""
     src = np.flatnonzero(mask)
@@ -194,6 +199,33 @@ def _spread(mask: np.ndarray, offsets: range, ring: np.ndarray) -> np.ndarray:
     return out
 
 
+def _kappa_checks(
+    xyz: np.ndarray,
+    order: np.ndarray,
+    sel: np.ndarray,
+    plane_cand: np.ndarray,
+    cfg: FeatureConfig,
+    kappa_all: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Curvature correction (paper 000): (n,) edge_ok and plane_ok over the ring-sorted points
+    (order: their input indices); fills kappa_all where computed. All True without kappa."""
+    n = len(order)
+    if kappa_all is None:
+        ok = np.ones(n, dtype=bool)
+        return ok, ok
+    # kappa only where a decision needs it: NMS-picked edges, and plane candidates unless
+    # kappa_plane_max >= sqrt(3) (kappa never exceeds it); one tree, one batch query
+    need = np.zeros(n, dtype=bool)
+    need[sel] = True
+    if cfg.kappa_plane_max < KAPPA_VOLUME + 1e-9:
+        need |= plane_cand
+    q = np.flatnonzero(need)
+    kappa = np.full(n, np.nan)
+    kappa[q] = covariance_curvature(xyz, cfg.cov_k, query_idx=order[q])
+    kappa_all[order[q]] = kappa[q]
+    return ~(kappa > cfg.kappa_edge_max), ~(kappa > cfg.kappa_plane_max)
+
+
 def extract_features(
     xyz: np.ndarray,
     ring: np.ndarray | None = None,
@@ -201,6 +233,7 @@ def extract_features(
     *,
     azimuth_order: np.ndarray | None = None,
     top_picks: bool = False,
+    backend: str = "numba",
 ) -> Features:
     """LOAM edge and plane features of one sweep.
 
@@ -209,6 +242,8 @@ def extract_features(
     points of a ring (e.g. per-point firing time); it is a key, not a permutation.
     top_picks: must be False (A-LOAM's frame-to-frame sharp/flat picks were removed: no
     front end used them); accepted so that existing calls keep working.
+    backend: "numba" (default: compiled kernels of ``slam.features.loam_kernels``) or "numpy"
+    (the vectorised reference); both give identical features and curvature.
     Curvature c_i = ||sum_{|j|<=w, j!=0} (p_{i+j} - p_i)||^2 (A-LOAM). With
     use_covariance_curvature, kappa (paper 000) is computed on the input cloud (expected to be
     SOR-filtered; neighbours searched in all of it, kappa only for the points a decision needs)
@@ -222,6 +257,8 @@ def extract_features(
     cfg = cfg or FeatureConfig()
     if top_picks:
         raise InputError("extract_features: the sharp/flat top picks were removed; pass False")
+    if backend not in ("numba", "numpy"):
+        raise ConfigError(f"extract_features: backend must be 'numba' or 'numpy', got {backend!r}")
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
@@ -233,6 +270,18 @@ def extract_features(
         raise InputError(f"ring must have shape ({n_all},), got {ring.shape}")
     if azimuth_order is not None and np.shape(azimuth_order) != (n_all,):
         raise InputError(f"azimuth_order must have shape ({n_all},)")
+    if backend == "numba":
+        feats = _extract_features_numba(xyz, ring, cfg, azimuth_order)
+        if feats is not None:
+            return feats
+    return _extract_features_numpy(xyz, ring, cfg, azimuth_order)
+
+
+def _extract_features_numpy(
+    xyz: np.ndarray, ring: np.ndarray, cfg: FeatureConfig, azimuth_order: np.ndarray | None
+) -> Features:
+    """The vectorised numpy reference of ``extract_features`` (checked arguments)."""
+    n_all = len(xyz)
     curvature_all = np.full(n_all, np.nan)
     w = cfg.window
     rng_all = np.linalg.norm(xyz, axis=1)
@@ -263,14 +312,14 @@ def extract_features(
     lo = np.clip(np.arange(n) - w, 0, n)
     hi = np.clip(np.arange(n) + w + 1, 0, n)
     diff = csum[hi] - csum[lo] - (2 * w + 1) * p
-    c = np.einsum("ij,ij->i", diff, diff)
+    c = _sq_norm(diff)
     valid = (pos >= w) & (pos < nr - w)
     c = np.where(valid, c, np.nan)
     curvature_all[order] = c
 
     # LOAM rejections: occluded points and surfaces nearly parallel to the beam
     step = np.diff(p, axis=0)
-    gap2 = np.r_[np.einsum("ij,ij->i", step, step), np.inf]
+    gap2 = np.r_[_sq_norm(step), np.inf]
     same_next = np.r_[rid[1:] == rid[:-1], False]
     gap2 = np.where(same_next, gap2, np.inf)
     picked = ~valid
@@ -300,20 +349,7 @@ def extract_features(
     cand = valid & ~picked & (cv > cfg.edge_threshold)
     sel = _greedy_nms(cv, cand, run, w)
     plane_cand = valid & (cv < cfg.plane_threshold)
-    edge_ok = plane_ok = np.ones(n, dtype=bool)
-    if kappa_all is not None:
-        # kappa only where a decision needs it: NMS-picked edges, and plane candidates unless
-        # kappa_plane_max >= sqrt(3) (kappa never exceeds it); one tree, one batch query
-        need = np.zeros(n, dtype=bool)
-        need[sel] = True
-        if cfg.kappa_plane_max < KAPPA_VOLUME + 1e-9:
-            need |= plane_cand
-        q = np.flatnonzero(need)
-        kappa = np.full(n, np.nan)
-        kappa[q] = covariance_curvature(xyz, cfg.cov_k, query_idx=order[q])
-        kappa_all[order[q]] = kappa[q]
-        edge_ok = ~(kappa > cfg.kappa_edge_max)
-        plane_ok = ~(kappa > cfg.kappa_plane_max)
+    edge_ok, plane_ok = _kappa_checks(xyz, order, sel, plane_cand, cfg, kappa_all)
     sel = sel[edge_ok[sel]]  # a rejected pseudo-edge is not replaced by its neighbours
     rank = _group_rank(sector[sel], cv[sel])
     less_sharp = sel[rank < cfg.max_less_sharp]
@@ -327,6 +363,67 @@ def extract_features(
     return Features(
         edge_idx=back(less_sharp),
         plane_idx=back(less_flat),
+        curvature=curvature_all,
+        kappa=kappa_all,
+    )
+
+
+def _extract_features_numba(
+    xyz: np.ndarray, ring: np.ndarray, cfg: FeatureConfig, azimuth_order: np.ndarray | None
+) -> Features | None:
+    """``_extract_features_numpy`` with the compiled kernels of ``loam_kernels``; None for the
+    inputs they do not take (non-integer or huge ring ids, NaN sort keys): use the reference."""
+    from slam.features import loam_kernels as kern  # numba is imported on first use only
+
+    n_all = len(xyz)
+    if ring.dtype.kind not in "iub" or (n_all and ring.max() >= 2**16):
+        return None
+    if azimuth_order is None:
+        key = np.arctan2(xyz[:, 1], xyz[:, 0])  # numpy's atan2: the reference's rounding
+    else:
+        key = np.ascontiguousarray(azimuth_order, dtype=np.float64)
+    xyz = np.ascontiguousarray(xyz)
+    order, start = kern.ring_order(
+        xyz, ring.astype(np.int64), key, float(cfg.min_range), float(cfg.max_range)
+    )
+    use_kappa = cfg.use_covariance_curvature and n_all >= 2
+    kappa_all = np.full(n_all, np.nan) if use_kappa else None
+    curvature_all = np.full(n_all, np.nan)
+    if len(order) == 0:
+        if azimuth_order is not None and n_all:
+            return None  # NaN keys (or nothing used): the reference decides
+        return Features(_empty_idx(), _empty_idx(), curvature_all, kappa=kappa_all)
+    w = int(cfg.window)
+    c, run, cand, plane_cand = kern.loam_scores(
+        xyz,
+        order,
+        start,
+        w,
+        float(cfg.edge_threshold),
+        float(cfg.plane_threshold),
+        float(cfg.neighbor_gap),
+        bool(cfg.reject_occluded),
+        bool(cfg.reject_parallel),
+        float(cfg.occlusion_gap),
+        float(cfg.occlusion_ratio),
+        float(cfg.parallel_ratio),
+        curvature_all,
+    )
+    sel = kern.greedy_nms(c, cand, run, w)
+    edge_ok, plane_ok = _kappa_checks(xyz, order, sel, plane_cand, cfg, kappa_all)
+    if kappa_all is not None:
+        sel = sel[edge_ok[sel]]
+    less_sharp = kern.sector_top(sel, start, c, w, int(cfg.n_sectors), int(cfg.max_less_sharp))
+    is_edge = np.zeros(n_all, dtype=bool)
+    is_edge[order[less_sharp]] = True
+    plane_cand[less_sharp] = False
+    if kappa_all is not None:
+        plane_cand &= plane_ok
+    is_plane = np.zeros(n_all, dtype=bool)
+    is_plane[order[plane_cand]] = True
+    return Features(
+        edge_idx=np.flatnonzero(is_edge),
+        plane_idx=np.flatnonzero(is_plane),
         curvature=curvature_all,
         kappa=kappa_all,
     )
