@@ -281,6 +281,40 @@ def figures(rows: list[dict], scene: str, fig_dir: Path) -> list[Path]:
     return files
 
 
+def plan_figure(path: Path) -> Path:
+    """Floor plan of the building scenes (walls cut at 1 m) with both routes and the
+    lines walked by workers and machinery."""
+    from slam.eval.plots import evo_plot, save_png
+    from slam.sim import make_scene
+
+    evo_plot()  # Agg backend
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    s_route, loop = make_scene("building"), make_scene("building_loop")
+    tri = s_route.vertices[s_route.triangles]
+    cut = (tri[:, :, 2].min(axis=1) < 1.0) & (tri[:, :, 2].max(axis=1) > 1.0)
+    fig, ax = plt.subplots(figsize=(14.0, 7.5), dpi=100)
+    ax.add_collection(PolyCollection(tri[cut][:, :, :2], facecolors="k", edgecolors="k", lw=0.2))
+    for scene, color, label, dy in ((s_route, "tab:red", "building (S route)", 0.0),
+                                    (loop, "tab:blue", "building_loop", 0.6)):  # fmt: skip
+        xy = scene.pose_at(np.arange(0.0, scene.duration, 0.5))[:, :2, 3]
+        ax.plot(xy[:, 0], xy[:, 1] + dy, "-", color=color, lw=1.2,
+                label=f"{label}: {scene.trajectory.length:.0f} m")  # fmt: skip
+        ax.plot(*xy[0], "o", color=color)
+    for ped in s_route.pedestrians:
+        ax.plot([ped.p0[0], ped.p1[0]], [ped.p0[1], ped.p1[1]], "-", color="tab:green", lw=2)
+    ax.plot([], [], "-", color="tab:green", lw=2, label="workers / machinery")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Simulated floor (walls at 1 m height)")
+    ax.legend(loc="upper center", ncol=3, bbox_to_anchor=(0.5, -0.08), frameon=True)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_png(fig, path)
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -296,7 +330,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", default="runs/table_lego")
     ap.add_argument("--figures", help="folder for the paper-style figures (e.g. docs/lego_lpb)")
+    ap.add_argument("--plan-only", action="store_true", help="only draw the floor plan")
     args = ap.parse_args(argv)
+    if args.figures:
+        print(f"figure: {plan_figure(Path(args.figures) / 'building_plan.png')}")
+    if args.plan_only:
+        return 0
 
     from slam.sim import ensure_sequence
 
