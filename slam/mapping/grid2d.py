@@ -1,0 +1,242 @@
+"""Probabilistic 2D occupancy grids (paper 003, DPCR-SLAM: submaps, regional maps, the
+global map) and the regional division of the workspace (eqs. (3)-(5)).
+
+A grid stores log-odds as int16 (the paper's ``unit`` = 2 bytes per cell) in a dense
+array that grows in blocks as scans land outside it. A scan updates the cells of its end
+points (hit) and the cells its rays cross before them (miss). Cell (r, c) covers world
+``x in origin_x + [c, c+1) * res``, ``y in origin_y + [r, r+1) * res``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.errors import ConfigError
+
+LOG_ODDS_SCALE = 100  # int16 log-odds units per nat
+
+
+@dataclass
+class GridConfig:
+    """resolution (m per cell, the paper's w_g = 5 cm); hit/miss: log-odds added for an end
+    point / a crossed cell (nats); clamp: |log-odds| bound (nats); occupied: log-odds above
+    which a cell is an obstacle (nats); block (cells): growth step of the dense array."""
+
+    resolution: float = 0.05
+    hit: float = 0.85
+    miss: float = -0.4
+    clamp: float = 3.5
+    occupied: float = 0.6
+    block: int = 256
+
+    def __post_init__(self) -> None:
+        if not self.resolution > 0:
+            raise ConfigError(f"grid resolution must be > 0, got {self.resolution}")
+        if not (self.hit > 0 > self.miss):
+            raise ConfigError("grid hit must be > 0 and miss < 0 (log-odds)")
+
+
+def ray_cells(origin: np.ndarray, ends: np.ndarray, res: float) -> np.ndarray:
+    """World points sampled every half cell along each ray from ``origin`` (2,) to each end
+    point (N, 2), end excluded: the cells a ray crosses before its hit. (M, 2)."""
+    d = ends - origin
+    length = np.linalg.norm(d, axis=1)
+    steps = np.maximum((length / (0.5 * res)).astype(np.int64), 0)
+    if steps.sum() == 0:
+        return np.zeros((0, 2))
+    ray = np.repeat(np.arange(len(ends)), steps)
+    first = np.cumsum(steps) - steps
+    k = np.arange(steps.sum()) - np.repeat(first, steps)
+    # stop one cell short of the end point, so that a hit is never cleared by its own ray
+    frac = k / np.maximum(steps[ray], 1) * np.maximum(1.0 - res / np.maximum(length[ray], res), 0)
+    return origin + d[ray] * frac[:, None]
+
+
+class OccupancyGrid:
+    """A growing dense log-odds grid. ``add_scan(points_world, origin)`` fuses one scan;
+    ``obstacles()`` gives the centres of occupied cells; ``add_grid`` fuses another grid."""
+
+    def __init__(self, cfg: GridConfig | None = None):
+        self.cfg = cfg or GridConfig()
+        self.data = np.zeros((0, 0), dtype=np.int16)
+        self.origin = np.zeros(2)  # world position of cell (0, 0)'s corner
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape  # type: ignore[return-value]
+
+    @property
+    def nbytes(self) -> int:
+        """Storage of the cells (bytes)."""
+        return int(self.data.nbytes)
+
+    def cells_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) int64 (row, col) of world points (may lie outside the array)."""
+        return np.floor((xy - self.origin) / self.cfg.resolution).astype(np.int64)[:, ::-1]
+
+    def centres(self, rc: np.ndarray) -> np.ndarray:
+        """World centres (N, 2) of cells (row, col)."""
+        return self.origin + (rc[:, ::-1] + 0.5) * self.cfg.resolution
+
+    def _ensure(self, xy: np.ndarray) -> None:
+        """Grow the array (in blocks) so that every point of ``xy`` falls inside it."""
+        if len(xy) == 0:
+            return
+        res, block = self.cfg.resolution, self.cfg.block
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        if self.data.size == 0:
+            self.origin = np.floor(lo / res / block) * block * res
+            rows = int(np.ceil((hi[1] - self.origin[1]) / res / block) + 1) * block
+            cols = int(np.ceil((hi[0] - self.origin[0]) / res / block) + 1) * block
+            self.data = np.zeros((rows, cols), dtype=np.int16)
+            return
+        rows, cols = self.data.shape
+        top = self.origin + np.array([cols, rows]) * res
+        pad_lo = np.maximum(np.ceil((self.origin - lo) / res / block), 0).astype(int) * block
+        pad_hi = np.maximum(np.ceil((hi - top) / res / block) + 1, 0).astype(int) * block
+        pad_hi[(hi < top)] = 0
+        if pad_lo.any() or pad_hi.any():
+            self.data = np.pad(self.data, ((pad_lo[1], pad_hi[1]), (pad_lo[0], pad_hi[0])))
+            self.origin = self.origin - pad_lo * res
+
+    # ------------------------------------------------------------------ updates
+    def _add(self, rc: np.ndarray, value: float) -> None:
+        if len(rc) == 0:
+            return
+        flat = np.ravel_multi_index((rc[:, 0], rc[:, 1]), self.data.shape)
+        flat = np.unique(flat)  # one update per cell and scan
+        lim = int(self.cfg.clamp * LOG_ODDS_SCALE)
+        view = self.data.reshape(-1)
+        new = view[flat].astype(np.int32) + int(round(value * LOG_ODDS_SCALE))
+        view[flat] = np.clip(new, -lim, lim).astype(np.int16)
+
+    def add_scan(self, points: np.ndarray, origin: np.ndarray, weight: float = 1.0) -> None:
+        """Fuse one scan: ``points`` (N, 2) end points and ``origin`` (2,) sensor position,
+        world frame. ``weight`` -1 removes a scan fused before (a sliding submap)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        origin = np.asarray(origin, dtype=np.float64)[:2]
+        free = ray_cells(origin, points, self.cfg.resolution)
+        self._ensure(np.vstack([points, origin[None]]))
+        hit_rc = self.cells_of(points)
+        free_rc = self.cells_of(free)
+        # a cell holding an end point of this scan is not also cleared by it
+        if len(free_rc) and len(hit_rc):
+            shape = self.data.shape
+            hit_flat = np.ravel_multi_index((hit_rc[:, 0], hit_rc[:, 1]), shape)
+            free_flat = np.ravel_multi_index((free_rc[:, 0], free_rc[:, 1]), shape)
+            free_rc = free_rc[~np.isin(free_flat, hit_flat)]
+        self._add(free_rc, self.cfg.miss * weight)
+        self._add(hit_rc, self.cfg.hit * weight)
+
+    def add_grid(self, other: OccupancyGrid, T: np.ndarray | None = None) -> None:
+        """Fuse the log-odds of ``other`` (moved by the 2D pose ``T`` = (x, y, theta) when
+        given): every known cell of ``other`` adds its log-odds at its moved centre."""
+        rc = np.argwhere(other.data != 0)
+        if len(rc) == 0:
+            return
+        xy = other.centres(rc)
+        if T is not None:
+            xy = transform2d(T, xy)
+        self._ensure(xy)
+        values = other.data[rc[:, 0], rc[:, 1]].astype(np.int32)
+        dst = self.cells_of(xy)
+        flat = np.ravel_multi_index((dst[:, 0], dst[:, 1]), self.data.shape)
+        acc = np.zeros(self.data.size, dtype=np.int32)
+        np.add.at(acc, flat, values)
+        touched = np.unique(flat)
+        lim = int(self.cfg.clamp * LOG_ODDS_SCALE)
+        view = self.data.reshape(-1)
+        view[touched] = np.clip(view[touched] + acc[touched], -lim, lim).astype(np.int16)
+
+    # ------------------------------------------------------------------ queries
+    def occupied_mask(self) -> np.ndarray:
+        return self.data > int(self.cfg.occupied * LOG_ODDS_SCALE)
+
+    def obstacles(self) -> np.ndarray:
+        """World centres (M, 2) of the obstacle cells (log-odds above ``occupied``)."""
+        return self.centres(np.argwhere(self.occupied_mask()))
+
+    def obstacle_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """World centres (M, 2) of the obstacle cells and their log-odds (nats)."""
+        rc = np.argwhere(self.occupied_mask())
+        return self.centres(rc), self.data[rc[:, 0], rc[:, 1]] / LOG_ODDS_SCALE
+
+    def probability(self) -> np.ndarray:
+        """Occupancy probability per cell (0.5 = unknown)."""
+        return 1.0 / (1.0 + np.exp(-self.data.astype(np.float64) / LOG_ODDS_SCALE))
+
+
+def transform2d(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points ``xy`` (N, 2) moved by the 2D pose T = (x, y, theta)."""
+    c, s = np.cos(T[2]), np.sin(T[2])
+    return xy @ np.array([[c, s], [-s, c]]) + T[:2]
+
+
+def compose2d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pose a * b, poses (x, y, theta)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2])])
+
+
+def inverse2d(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap(-a[2])])
+
+
+def wrap(angle: float | np.ndarray) -> float | np.ndarray:
+    """Angle(s) wrapped to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------- regions
+@dataclass(frozen=True)
+class RegionDivision:
+    """The regional division of a grid space (paper 003, section 3.4.1): grid width w_g
+    (m), I x J cells centred on the world origin, regions of N x N cells (S = N w_g,
+    eq. (4))."""
+
+    grid_width: float
+    rows: int  # I
+    cols: int  # J
+    cells_per_region: int  # N
+
+    @classmethod
+    def with_width(
+        cls, region_width: float, grid_width: float = 0.05, extent: float = 2000.0
+    ) -> RegionDivision:
+        """Regions of width S (m) over a square grid space of ``extent`` m."""
+        n = int(round(region_width / grid_width))
+        cells = int(round(extent / grid_width))
+        if not 0 < n < cells:
+            raise ConfigError(f"region width {region_width} m must be in (0, {extent}) m")
+        return cls(grid_width, cells, cells, n)
+
+    @property
+    def region_width(self) -> float:
+        return self.cells_per_region * self.grid_width
+
+    def grid_coords(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. (3): i = round(y / w_g + I / 2), j = round(x / w_g + J / 2)."""
+        xy = np.atleast_2d(xy)
+        i = np.round(xy[:, 1] / self.grid_width + self.rows / 2).astype(np.int64)
+        j = np.round(xy[:, 0] / self.grid_width + self.cols / 2).astype(np.int64)
+        return i, j
+
+    def region_of(self, xy: np.ndarray) -> np.ndarray:
+        """Eq. (5): R_k = fix(i / N) * (J / N) + fix(j / N) for world points (N, 2)."""
+        i, j = self.grid_coords(xy)
+        n = self.cells_per_region
+        return (i // n) * (self.cols // n) + (j // n)
+
+    def centre(self, region: int) -> np.ndarray:
+        """World centre (2,) of region ``region``."""
+        n = self.cells_per_region
+        per_row = self.cols // n
+        i0, j0 = (region // per_row) * n, (region % per_row) * n
+        # cells i0 .. i0 + N - 1 hold y in [(i0 - 1/2 - I/2) w_g, (i0 + N - 1/2 - I/2) w_g)
+        x = (j0 + (n - 1) / 2 - self.cols / 2) * self.grid_width
+        y = (i0 + (n - 1) / 2 - self.rows / 2) * self.grid_width
+        return np.array([x, y])

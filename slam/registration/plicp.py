@@ -1,0 +1,193 @@
+"""The improved PLICP of paper 003 (DPCR-SLAM, section 3.2): point-to-line ICP in 2D in
+which every target point is matched to the orthogonal projection of itself on the LINE
+FEATURE of its nearest reference point (not on the local line through its two nearest
+reference points), so that the error directions follow the walls.
+
+Steps (3.2.1): (3) for each target point p_i the nearest reference point q_j; the match is
+the foot of the perpendicular from p_i on the line feature through q_j; (5) the rigid
+transform (theta, t) minimising the sum of squared point-to-line distances (Gauss-Newton
+on the three parameters, exact rotation); (6) P_{k+1} = R(theta_k) P_k + t_k, eq. (1);
+(7) J = sum ||p_i^{k+1} - q_ji||^2, eq. (2), here Huber-weighted so that points on walls
+the reference has not seen yet do not bias the pose; (8) repeat until the update is below
+the threshold or the iteration cap. Reference points on no line are matched
+point-to-point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam.errors import ConfigError
+from slam.mapping.grid2d import compose2d, transform2d, wrap
+
+
+@dataclass
+class PlicpConfig:
+    """max_iterations; tolerance: stop when the update is below it (m and rad);
+    max_distance (m): matches farther than this (after the prediction) are ignored;
+    min_matches: fewest matches for a usable result; robust_floor (m): smallest Huber
+    threshold (the threshold is 3 robust sigmas of the residuals)."""
+
+    max_iterations: int = 30
+    tolerance: float = 1e-5
+    max_distance: float = 0.5
+    min_matches: int = 20
+    robust_floor: float = 0.03
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1 or not self.max_distance > 0:
+            raise ConfigError("plicp: max_iterations >= 1 and max_distance > 0 required")
+
+
+@dataclass
+class PlicpResult:
+    """pose (x, y, theta) mapping target points into the reference frame; rmse (m) of the
+    final matches; matches: their count; iterations; converged; info: 3x3 information
+    (x, y, theta) = J^T J / sigma^2 of the final residuals."""
+
+    pose: np.ndarray
+    rmse: float
+    matches: int
+    iterations: int
+    converged: bool
+    info: np.ndarray
+
+
+@dataclass
+class LineReference:
+    """A reference cloud, the line feature of each point - its direction (NaN: on no line)
+    and a point of the line (the fitted line, not the cell centre) - and its KD-tree,
+    built once and reused over iterations and scans."""
+
+    points: np.ndarray
+    directions: np.ndarray
+    anchors: np.ndarray
+    tree: cKDTree
+
+    @classmethod
+    def build(
+        cls,
+        points: np.ndarray,
+        directions: np.ndarray | None = None,
+        anchors: np.ndarray | None = None,
+    ) -> LineReference:
+        """``directions`` (M, 2) unit or NaN; ``anchors`` (M, 2) a point on each point's
+        line (default: the point itself)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if directions is None:
+            directions = np.full_like(points, np.nan)
+        anchors = points if anchors is None else np.asarray(anchors, dtype=np.float64)
+        return cls(points, np.asarray(directions, dtype=np.float64), anchors, cKDTree(points))
+
+    @classmethod
+    def from_lines(cls, lines) -> LineReference:
+        """The reference of a :class:`slam.features.lines2d.LineSet`: every obstacle point
+        with the direction and centre of its line."""
+        anchors = lines.points.copy()
+        on = lines.label >= 0
+        anchors[on] = lines.centre[lines.label[on]]
+        return cls.build(lines.points, lines.point_directions(), anchors)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def _residuals(
+    moved: np.ndarray, ref: LineReference, max_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Matches of ``moved`` target points: (point index, normal rows (K, 2), residuals (K,))
+    stacked so that a line match gives one row (its normal) and a point match two."""
+    dist, j = ref.tree.query(moved, k=1, distance_upper_bound=max_distance)
+    ok = np.isfinite(dist)
+    i = np.flatnonzero(ok)
+    j = j[ok]
+    d = ref.directions[j]
+    on_line = np.isfinite(d[:, 0])
+    normals = np.column_stack([-d[on_line, 1], d[on_line, 0]])
+    rows_i = [i[on_line]]
+    rows_n = [normals]
+    rows_q = [ref.anchors[j[on_line]]]
+    pts = i[~on_line]
+    if len(pts):  # point-to-point: both axes
+        q = ref.points[j[~on_line]]
+        for axis in (np.array([1.0, 0.0]), np.array([0.0, 1.0])):
+            rows_i.append(pts)
+            rows_n.append(np.broadcast_to(axis, (len(pts), 2)))
+            rows_q.append(q)
+    idx = np.concatenate(rows_i)
+    n = np.concatenate(rows_n)
+    q = np.concatenate(rows_q)
+    r = np.einsum("ij,ij->i", moved[idx] - q, n)
+    return idx, n, r, ok
+
+
+def plicp(
+    target: np.ndarray,
+    ref: LineReference,
+    initial: np.ndarray | None = None,
+    cfg: PlicpConfig | None = None,
+) -> PlicpResult:
+    """Register ``target`` points (N, 2, own frame) to ``ref``; ``initial`` (x, y, theta)
+    the prediction. Returns the pose mapping target points into the reference frame."""
+    cfg = cfg or PlicpConfig()
+    target = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    pose = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64).copy()
+    converged, it = False, 0
+    if len(ref) == 0 or len(target) == 0:
+        return PlicpResult(pose, np.inf, 0, 0, False, np.zeros((3, 3)))
+    while it < cfg.max_iterations:
+        it += 1
+        moved = transform2d(pose, target)
+        idx, n, r, _ = _residuals(moved, ref, cfg.max_distance)
+        if len(np.unique(idx)) < cfg.min_matches:
+            break
+        # perturbation of the moved points about their centroid c (well conditioned far
+        # from the origin): m' = R(d_theta) (m - c) + c + d_t
+        c = moved[idx].mean(axis=0)
+        J = _jacobian(n, moved[idx] - c)
+        w = _huber_weights(r, cfg.robust_floor)
+        Jw = J * w[:, None]
+        delta = -np.linalg.solve(Jw.T @ J + 1e-9 * np.eye(3), Jw.T @ r)
+        ct, st = np.cos(delta[2]), np.sin(delta[2])
+        shift = c + delta[:2] - np.array([ct * c[0] - st * c[1], st * c[0] + ct * c[1]])
+        pose = compose2d(np.array([shift[0], shift[1], delta[2]]), pose)
+        if np.all(np.abs(delta) < cfg.tolerance):
+            converged = True
+            break
+    moved = transform2d(pose, target)
+    idx, n, r, _ = _residuals(moved, ref, cfg.max_distance)
+    matches = len(np.unique(idx))
+    if matches == 0:
+        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)))
+    w = _huber_weights(r, cfg.robust_floor)
+    rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
+    sigma2 = max(rmse, 0.01) ** 2
+    J = _jacobian(n, moved[idx])  # about the world origin, then into the pose's tangent
+    info = _world_to_body_info((J * w[:, None]).T @ J / sigma2, pose)
+    pose[2] = float(wrap(pose[2]))
+    return PlicpResult(pose, rmse, matches, it, converged and matches >= cfg.min_matches, info)
+
+
+def _huber_weights(r: np.ndarray, floor: float) -> np.ndarray:
+    """Huber weights with the threshold 3 robust sigmas of the residuals (at least
+    ``floor`` m): matches to walls the reference has not seen yet (up to ``max_distance``
+    away) stop pulling the pose."""
+    c = max(floor, 3.0 * 1.4826 * float(np.median(np.abs(r))))
+    a = np.abs(r)
+    return np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
+
+
+def _jacobian(n: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """d(n . m)/d(dx, dy, d_theta) for points m rotated about the origin of their frame."""
+    return np.column_stack([n[:, 0], n[:, 1], n[:, 1] * m[:, 0] - n[:, 0] * m[:, 1]])
+
+
+def _world_to_body_info(info_world: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Information of a left (world-frame) perturbation turned into one of the pose's own
+    (x, y, theta) tangent as gtsam's Pose2 uses: d_world = Ad(pose) d_body."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    ad = np.array([[c, -s, pose[1]], [s, c, -pose[0]], [0.0, 0.0, 1.0]])
+    return ad.T @ info_world @ ad
