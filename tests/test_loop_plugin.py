@@ -499,3 +499,82 @@ def test_street_driven_back_the_other_way_verifies_from_a_yaw_half_a_turn_off():
     np.testing.assert_allclose(res.T_target_source[:3, 3], truth[:3, 3], atol=0.05)
     off = verify(seen_from(T_w_t), seen_from(T_w_s), np.eye(4), VerifyParams(try_flip=False))
     assert not off.accepted or abs(off.yaw_deg) < 90  # without the flip: rejected or wrong
+
+
+def _bev_reference(target, source, yaw, search, cell, yaw_offsets_deg):
+    """The first BEV search (numpy FFT padded to twice the image): the reference of the
+    minimally padded, shared-spectrum one. Returns the correlation map of every offset."""
+    vm = importlib.import_module("slam.loop.verify")
+    tgt, src = vm._above_ground(target), vm._above_ground(source)
+    half = int(np.ceil((search + 30.0) / cell))
+    n = 2 * half
+    ft = np.fft.rfft2(vm._bev_image(tgt[:, :2], cell, half), s=(2 * n, 2 * n))
+    shifts = np.fft.fftfreq(2 * n, 1.0 / (2 * n)).astype(np.int64)
+    reach = np.abs(shifts) * cell <= search
+    maps = {}
+    for off in yaw_offsets_deg:
+        y = yaw + np.radians(off)
+        c, s = np.cos(y), np.sin(y)
+        img = vm._bev_image(src[:, :2] @ np.array([[c, s], [-s, c]]), cell, half)
+        corr = np.fft.irfft2(ft * np.conj(np.fft.rfft2(img, s=(2 * n, 2 * n))), s=(2 * n, 2 * n))
+        corr[~reach, :] = -1.0
+        corr[:, ~reach] = -1.0
+        maps[off] = (np.rint(corr), shifts, max(img.sum(), 1.0))
+    return maps
+
+
+def test_bev_translation_equals_the_twice_padded_reference():
+    """Padding by the search radius only (not by the image size) gives the same correlation:
+    the returned shift and yaw are a maximum of the reference's, with the same peak share."""
+    vm = importlib.import_module("slam.loop.verify")
+    rng = np.random.default_rng(5)
+    world = _street(rng)
+    a = world - [0.0, -2.2, 1.8]
+    b = (world - [7.0, 2.2, 1.8]) @ yaw_matrix(np.radians(4))[:3, :3]
+    offs = (-6.0, -3.0, 0.0, 3.0, 6.0)
+    T, share = vm.bev_translation(a, b, 0.0, 20.0, 0.5, offs)
+    maps = _bev_reference(a, b, 0.0, 20.0, 0.5, offs)
+    peak = max(m[0].max() for m in maps.values())
+    off = float(np.degrees(vm.yaw_of(T)))
+    corr, shifts, occupied = maps[min(maps, key=lambda o: abs(o - off))]
+    i = int(np.flatnonzero(shifts == round(T[0, 3] / 0.5))[0])
+    j = int(np.flatnonzero(shifts == round(T[1, 3] / 0.5))[0])
+    assert corr[i, j] == peak
+    assert share == pytest.approx(peak / occupied)
+    np.testing.assert_allclose(T[:2, 3], [7.0, 4.4], atol=0.75)  # and it is the true offset
+
+
+def test_candidate_the_odometry_rules_out_is_not_registered(monkeypatch):
+    """A candidate whose estimate lies farther than max_offset + the consistency allowance,
+    or whose guessed yaw (either way round) cannot meet the estimate's, skips GICP."""
+    plugin_mod = importlib.import_module("slam.loop.plugin")
+    calls = []
+    monkeypatch.setattr(plugin_mod, "verify", lambda *a: calls.append(a) or None)
+    plugin = LoopClosurePlugin(LoopClosurePlugin.Config(max_radius=40.0, lidar_height=1.0))
+    cloud = np.random.default_rng(0).normal(size=(100, 3))
+    poses = {0: np.eye(4), 1: _pose(60.0, 0.0, 0.0)}
+    kfs = [Keyframe(i, float(i), i, poses[i], np.eye(4), np.eye(6), cloud) for i in (0, 1)]
+    view = GraphView(kfs, lambda i: poses[i])
+    plugin._travel = {0: 0.0, 1: 60.0}  # allowance 3 + 0.04 x 60 = 5.4 m < 60 - 20 m
+    far = plugin_mod.Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+    assert plugin._verify_candidates(kfs[1], [far], view) == []
+    assert "not registered" in plugin.events[-1].reason and not calls
+    poses[1] = _pose(2.0, 0.0, np.radians(90))  # near, but turned a quarter turn
+    turned = plugin_mod.Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+    assert plugin._verify_candidates(kfs[1], [turned], view) == []
+    assert "turns" in plugin.events[-1].reason and not calls, plugin.events[-1].reason
+    assert plugin.stats()["skipped"] == 2 and plugin.stats()["registered"] == 0
+    poses[1] = _pose(2.0, 0.0, np.radians(170))  # the other way round: the flip may reach it
+    assert plugin._unreachable(view, kfs[1], 0, yaw_matrix(0.0)) == ""
+
+
+def test_plugin_keeps_no_copy_of_the_keyframe_clouds(hall_run):
+    """Only descriptors and keys: verification reads the pipeline's Keyframe.cloud."""
+    plugin = hall_run[0]
+    held = sum(v.nbytes for v in vars(plugin.db).values() if isinstance(v, np.ndarray)) + sum(
+        v.nbytes for v in vars(plugin).values() if isinstance(v, np.ndarray)
+    )
+    per_kf = held / len(plugin.db)
+    assert per_kf < 20 * 60 * 4 * 3  # ~ a descriptor (20 x 60 float32) and its keys, not points
+    assert not any(isinstance(v, dict) and v and isinstance(next(iter(v.values())), np.ndarray)
+                   for v in vars(plugin).values())  # fmt: skip

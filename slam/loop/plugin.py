@@ -17,12 +17,19 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-import small_gicp
 
+from slam.errors import InputError
 from slam.factors import FactorConfig, GraphView, information_noise, key, pose3, robust_noise
 from slam.loop.scan_context import ScanContextParams, scan_context
 from slam.loop.search import Candidate, ScanContextDatabase, SearchParams
-from slam.loop.verify import VerifyParams, verify, wrap_angle, yaw_matrix, yaw_of
+from slam.loop.verify import (
+    VerifyParams,
+    VerifyResult,
+    verify,
+    wrap_angle,
+    yaw_matrix,
+    yaw_of,
+)
 from slam.types import Keyframe, LoopConstraint
 
 log = logging.getLogger(__name__)
@@ -200,12 +207,14 @@ class LoopClosurePlugin:
         )
         self.events: list[LoopConstraint] = []
         self._event_meta: list[tuple[float, float, float]] = []  # stamps and yaw per event
-        self._clouds: dict[int, np.ndarray] = {}  # kf id -> voxelised sensor-frame cloud (f32)
         self._row_of: dict[int, int] = {}
         self._travel: dict[int, float] = {}  # kf id -> odometric distance since the start (m)
         self._last_accepted = -(10**9)
-        self.detect_ms: list[float] = []
-        self.verify_ms: list[float] = []
+        self.detect_ms: list[float] = []  # per keyframe: descriptor + search
+        self.verify_ms: list[float] = []  # per keyframe with candidates: all of verification
+        self.registrations = 0  # candidates registered by GICP
+        self.register_ms = 0.0  # their total time (ms)
+        self.skipped = 0  # candidates ruled out by the odometry before registration
 
     # ------------------------------------------------------------------ plugin interface
     def on_keyframe(self, kf: Keyframe, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
@@ -214,7 +223,6 @@ class LoopClosurePlugin:
         if not cfg.enabled:
             return []
         t0 = time.perf_counter()
-        self._clouds[kf.id] = self._downsample(kf.cloud)
         pending = self.sc_params is None
         if pending:
             self._pending.append(kf)
@@ -247,12 +255,17 @@ class LoopClosurePlugin:
             self._row_of[k.id] = self.db.add(k.id, k.stamp, scan_context(k.cloud, self.sc_params))
         self._pending = []
 
-    def _downsample(self, cloud: np.ndarray) -> np.ndarray:
-        pts = np.ascontiguousarray(np.asarray(cloud, dtype=np.float64)[:, :3])
-        if len(pts) == 0:
-            return np.zeros((0, 3), dtype=np.float32)
-        ds = small_gicp.voxelgrid_sampling(pts, self.config.verify_voxel)
-        return np.asarray(ds.points())[:, :3].astype(np.float32)
+    @staticmethod
+    def _cloud(graph: GraphView, kf_id: int) -> np.ndarray:
+        """Sensor-frame cloud of keyframe ``kf_id``: the pipeline's copy, never one of our own
+        (verification voxelises it to ``verify_voxel`` itself)."""
+        kfs = graph.keyframes
+        if not 0 <= kf_id < len(kfs) or kfs[kf_id].id != kf_id:
+            raise InputError(
+                f"loop closure: keyframe {kf_id} is not in the graph view "
+                f"({len(kfs)} keyframes): the view must list keyframes by id"
+            )
+        return kfs[kf_id].cloud
 
     def _candidates(self, kf: Keyframe, desc: np.ndarray, graph: GraphView) -> list[Candidate]:
         """Scan Context candidates below the threshold, then proximity candidates (if on)."""
@@ -298,22 +311,22 @@ class LoopClosurePlugin:
         """The keyframe's stored cloud merged with its +-neighbours (those already seen),
         transformed into its sensor frame by the current estimates."""
         n = self.config.neighbours
-        parts = [self._clouds[kf_id].astype(np.float64)]
+        parts = [np.asarray(self._cloud(graph, kf_id), dtype=np.float64)[:, :3]]
         if n > 0:
             T_c_w = np.linalg.inv(T_w_center)
-            for j in range(kf_id - n, kf_id + n + 1):
-                if j == kf_id or j not in self._clouds:
+            for j in range(max(kf_id - n, 0), min(kf_id + n + 1, len(graph.keyframes))):
+                if j == kf_id:
                     continue
                 T = T_c_w @ self._estimate_id(graph, j)
-                parts.append(self._clouds[j].astype(np.float64) @ T[:3, :3].T + T[:3, 3])
-        return np.concatenate(parts, axis=0)
+                cloud = np.asarray(self._cloud(graph, j), dtype=np.float64)[:, :3]
+                parts.append(cloud @ T[:3, :3].T + T[:3, 3])
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
 
     def _verify_candidates(
         self, kf: Keyframe, candidates: list[Candidate], graph: GraphView
     ) -> list[gtsam.BetweenFactorPose3]:
         cfg = self.config
-        T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
-        source = self._local_cloud(graph, kf.id, T_w_cur)
+        source = None  # built on first use: a candidate the odometry rules out needs none
         for cand in candidates[: cfg.max_verify]:
             if cand.shift < 0:  # proximity candidate: the estimate is the initial guess
                 init = np.linalg.inv(self._estimate_id(graph, cand.kf_id)) @ self._estimate(
@@ -321,12 +334,25 @@ class LoopClosurePlugin:
                 )
             else:
                 init = yaw_matrix(cand.yaw)
-            T_w_cand = self._estimate_id(graph, cand.kf_id) if cfg.neighbours > 0 else np.eye(4)
-            target = self._local_cloud(graph, cand.kf_id, T_w_cand)
-            res = verify(target, source, init, self.verify_params)
-            if res.accepted:
-                res.reason = self._inconsistency(graph, kf, cand.kf_id, res.T_target_source)
-                res.accepted = not res.reason
+            res = None
+            reason = self._unreachable(graph, kf, cand.kf_id, init)
+            if reason:  # no registration could pass the gates: skip GICP
+                self.skipped += 1
+                res = VerifyResult(False, init, np.inf, 0.0, np.degrees(cand.yaw), np.zeros((6, 6)),
+                                   reason)  # fmt: skip
+            else:
+                if source is None:
+                    T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
+                    source = self._local_cloud(graph, kf.id, T_w_cur)
+                T_w_cand = self._estimate_id(graph, cand.kf_id) if cfg.neighbours > 0 else np.eye(4)
+                target = self._local_cloud(graph, cand.kf_id, T_w_cand)
+                t0 = time.perf_counter()
+                res = verify(target, source, init, self.verify_params)
+                self.registrations += 1
+                self.register_ms += 1e3 * (time.perf_counter() - t0)
+                if res.accepted:
+                    res.reason = self._inconsistency(graph, kf, cand.kf_id, res.T_target_source)
+                    res.accepted = not res.reason
             self.events.append(
                 LoopConstraint(
                     source=kf.id,
@@ -355,6 +381,42 @@ class LoopClosurePlugin:
                 )
             ]
         return []
+
+    def _unreachable(self, graph: GraphView, kf: Keyframe, cand_id: int, init: np.ndarray) -> str:
+        """Why no registration from ``init`` could pass both the verification's and the
+        odometry-consistency gates (empty string when one could): a cheap test before GICP.
+
+        Exact consequence of the gates, so it rejects nothing they would accept: a result
+        must lie within max_offset (m) of the candidate and within base + ratio x travelled
+        of the estimate, so an estimate farther than their sum cannot pass; its yaw must lie
+        within yaw_tolerance_deg of the guess or of the guess turned half a turn (try_flip;
+        the flip's start also searches the BEV yaw offsets) and within consistency_yaw_deg of
+        the estimate's yaw.
+        """
+        cfg, p = self.config, self.verify_params
+        if cfg.consistency_ratio < 0:
+            return ""
+        T_est = np.linalg.inv(self._estimate_id(graph, cand_id)) @ self._estimate(graph, kf)
+        travelled = abs(self._travel.get(kf.id, 0.0) - self._travel.get(cand_id, 0.0))
+        allowed = cfg.consistency_base + cfg.consistency_ratio * travelled
+        dist = float(np.linalg.norm(T_est[:3, 3]))
+        if dist > p.max_offset + allowed:
+            return (
+                f"inconsistent with odometry: the estimate is {dist:.1f} m away "
+                f"(> max_offset {p.max_offset:.0f} m + allowed {allowed:.1f} m), not registered"
+            )
+        guess, est = yaw_of(init), yaw_of(T_est)
+        margin = cfg.consistency_yaw_deg + p.yaw_tolerance_deg
+        offs = max((abs(o) for o in p.bev_yaw_offsets_deg), default=0.0)
+        turns = [abs(np.degrees(wrap_angle(guess - est)))]
+        if p.try_flip:
+            turns.append(abs(np.degrees(wrap_angle(guess + np.pi - est))) - offs)
+        if min(turns) > margin:
+            return (
+                f"inconsistent with odometry: guess turns {min(turns):.0f} deg from the "
+                f"estimate (> {margin:.0f} deg), not registered"
+            )
+        return ""
 
     def _inconsistency(
         self, graph: GraphView, kf: Keyframe, cand_id: int, T_cand_cur: np.ndarray
@@ -386,13 +448,28 @@ class LoopClosurePlugin:
         return [e for e in self.events if e.accepted]
 
     def stats(self) -> dict[str, float]:
-        """Counts and mean timings (ms) for metrics.json."""
+        """Counts and timings (ms) for metrics.json.
+
+        detect_ms_*: descriptor + candidate search per keyframe (mean, max); verify_ms_mean:
+        per keyframe that had candidates; verify_ms_per_keyframe: verification time spread
+        over all keyframes (what it adds to the keyframe rate); register_ms_mean: per
+        candidate registered by GICP; skipped: candidates the odometry ruled out unregistered.
+        """
+        n = len(self.detect_ms)
+        total = float(np.sum(self.verify_ms)) if self.verify_ms else 0.0
         return {
             "keyframes": len(self.db),
             "verified": len(self.events),
+            "registered": self.registrations,
+            "skipped": self.skipped,
             "accepted": len(self.accepted),
-            "detect_ms_mean": float(np.mean(self.detect_ms)) if self.detect_ms else 0.0,
+            "detect_ms_mean": float(np.mean(self.detect_ms)) if n else 0.0,
+            "detect_ms_max": float(np.max(self.detect_ms)) if n else 0.0,
             "verify_ms_mean": float(np.mean(self.verify_ms)) if self.verify_ms else 0.0,
+            "verify_ms_per_keyframe": total / n if n else 0.0,
+            "register_ms_mean": self.register_ms / self.registrations
+            if self.registrations
+            else 0.0,
         }
 
     def write_csv(self, path: str | Path) -> None:

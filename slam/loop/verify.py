@@ -34,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.fft
 import small_gicp
 
 from slam.features.curvature import local_covariances
@@ -179,6 +180,36 @@ def _above_ground(points: np.ndarray) -> np.ndarray:
     return points[z > np.percentile(z, 5) + 0.5]
 
 
+@dataclass(frozen=True)
+class BevTarget:
+    """The target's bird's-eye-view occupancy spectrum, computed once per verification and
+    shared by every yaw and start searched against it. half: image half-size (cells);
+    size: FFT size per axis (>= image size + search cells, so the circular correlation equals
+    the linear one for every shift searched); reach: which FFT indices are shifts within the
+    search radius."""
+
+    spectrum: np.ndarray
+    cell: float
+    half: int
+    size: int
+    shifts: np.ndarray
+    reach: np.ndarray
+
+
+def bev_target(target: np.ndarray, search: float, cell: float = 0.5) -> BevTarget:
+    """Prepare the target side of :func:`bev_translation` (above-ground points, ``cell`` m)."""
+    half = int(np.ceil((search + 30.0) / cell))  # image covers +-(search + 30) m
+    reach_cells = int(np.floor(search / cell))
+    # zero padding of reach_cells suffices: corr[t] only needs x + t in [-reach, n + reach)
+    size = int(scipy.fft.next_fast_len(2 * half + reach_cells + 1, real=True))
+    img = _bev_image(_above_ground(target)[:, :2], cell, half)
+    shifts = np.fft.fftfreq(size, 1.0 / size).astype(np.int64)  # index -> signed shift
+    return BevTarget(
+        scipy.fft.rfft2(img, s=(size, size)), cell, half, size, shifts,
+        np.abs(shifts) <= reach_cells,
+    )  # fmt: skip
+
+
 def bev_translation(
     target: np.ndarray,
     source: np.ndarray,
@@ -186,20 +217,22 @@ def bev_translation(
     search: float,
     cell: float = 0.5,
     yaw_offsets_deg: tuple[float, ...] = (0.0,),
+    prepared: BevTarget | None = None,
 ) -> tuple[np.ndarray, float]:
     """A 4x4 start T_target_source from a bird's-eye-view correlation, and its peak share.
 
     The above-ground points of both clouds become occupancy images (``cell`` m); for each
     yaw ``yaw + offset`` the rotated source image is cross-correlated with the target's by
     FFT and the best shift within ``search`` m is taken; the yaw and shift of the highest
-    peak win. peak share: correlation peak / occupied source cells (0-1).
+    peak win (ties: the first offset, the first shift in FFT order; the correlation of two
+    binary images is an integer count, rounded so ties do not hinge on FFT round-off).
+    peak share: correlation peak / occupied source cells (0-1). ``prepared``: the target's
+    :func:`bev_target` for the same search and cell (computed here when None).
     """
-    tgt, src = _above_ground(target), _above_ground(source)
-    half = int(np.ceil((search + 30.0) / cell))  # image covers +-(search + 30) m
-    n = 2 * half
-    ft = np.fft.rfft2(_bev_image(tgt[:, :2], cell, half), s=(2 * n, 2 * n))
-    shifts = np.fft.fftfreq(2 * n, 1.0 / (2 * n)).astype(np.int64)  # index -> signed shift
-    reach = np.abs(shifts) * cell <= search
+    bt = prepared if prepared is not None else bev_target(target, search, cell)
+    src = _above_ground(source)
+    n, half, cell = bt.size, bt.half, bt.cell
+    outside = ~bt.reach
     best = (-1.0, 0.0, 0, 0, 1.0)
     for off in yaw_offsets_deg:
         y = yaw + np.radians(off)
@@ -208,12 +241,13 @@ def bev_translation(
         img = _bev_image(xy, cell, half)
         occupied = max(float(img.sum()), 1.0)
         # corr[t] = sum_x target[x + t] * source[x]
-        corr = np.fft.irfft2(ft * np.conj(np.fft.rfft2(img, s=(2 * n, 2 * n))), s=(2 * n, 2 * n))
-        corr[~reach, :] = -1.0
-        corr[:, ~reach] = -1.0
+        spec = bt.spectrum * np.conj(scipy.fft.rfft2(img, s=(n, n)))
+        corr = np.rint(scipy.fft.irfft2(spec, s=(n, n)))
+        corr[outside, :] = -1.0
+        corr[:, outside] = -1.0
         i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
         if corr[i, j] > best[0]:
-            best = (float(corr[i, j]), y, int(shifts[i]), int(shifts[j]), occupied)
+            best = (float(corr[i, j]), y, int(bt.shifts[i]), int(bt.shifts[j]), occupied)
     peak, y, di, dj, occupied = best
     return yaw_matrix(y, np.array([di * cell, dj * cell, 0.0])), peak / occupied
 
@@ -336,6 +370,9 @@ def verify(
         ct, cs = (_prepare(tgt, p.coarse_voxel, p.num_threads),
                   _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
     judged = judged_points(fs, T0[:3, :3], p.max_judged)
+    bev_tgt = bev_src = bt = None
+    if p.global_search > 0.0:
+        bev_tgt, bev_src = (ct.points, cs.points) if coarse else (tgt, src)
     best = None
     # coarse stage per start, kept only if it improves the score. "flip": the guess turned by
     # half a turn: Scan Context's column shift is ambiguous by 180 deg in street canyons and
@@ -347,16 +384,18 @@ def verify(
                 continue
             start = T0 @ _half_turn()
             if p.global_search > 0.0:  # the other lane is metres aside: search it at once
+                bt = bt or bev_target(bev_tgt, p.global_search, p.bev_cell)
                 start, _ = bev_translation(
-                    ct.points if coarse else tgt, cs.points if coarse else src,
-                    yaw_of(start), p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
+                    bev_tgt, bev_src, yaw_of(start), p.global_search, p.bev_cell,
+                    p.bev_yaw_offsets_deg, bt,
                 )  # fmt: skip
         elif name == "bev":
             if p.global_search <= 0.0 or best[2][0] >= p.global_skip_overlap:
                 break  # off, or the guess already explains the scan
+            bt = bt or bev_target(bev_tgt, p.global_search, p.bev_cell)
             start, _ = bev_translation(
-                ct.points if coarse else tgt, cs.points if coarse else src, guess_yaw,
-                p.global_search, p.bev_cell, p.bev_yaw_offsets_deg,
+                bev_tgt, bev_src, guess_yaw, p.global_search, p.bev_cell,
+                p.bev_yaw_offsets_deg, bt,
             )  # fmt: skip
         else:
             start = T0
