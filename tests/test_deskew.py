@@ -6,7 +6,7 @@ from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
 from slam.deskew import deskew, interpolate_pose, se3_log
-from slam.errors import InputError
+from slam.errors import ConfigError, InputError
 
 PERIOD = 0.1
 
@@ -84,3 +84,38 @@ def test_closed_form_deskew_equals_per_point_geodesic(T):
     R, t = interpolate_pose(T, time / PERIOD)
     expected = np.einsum("nij,nj->ni", R, xyz) + t
     assert np.abs(deskew(xyz, time, T, PERIOD) - expected).max() < 1e-9
+
+
+@pytest.mark.parametrize(
+    "T",
+    [
+        T_START_END,
+        pose([0.3, -0.2, 1.0], [0.5, 2.0, 0.1]),
+        pose([0.0, 0.0, 1e-3], [1.5, 0.0, 0.0]),  # x = s theta crosses the series bound
+        pose([0.0, 0.0, 1e-7], [0.1, 0.0, 0.0]),
+        pose([0.0, 0.0, 0.0], [0.1, -0.2, 0.3]),
+    ],
+)
+def test_compiled_deskew_equals_numpy_reference(T):
+    rng = np.random.default_rng(4)
+    xyz = rng.uniform(-80, 80, (3000, 3))
+    # firing columns: runs of equal stamps (one cos/sin per run), then distinct stamps
+    time = np.r_[np.repeat(np.linspace(0, PERIOD, 100), 16), rng.uniform(0, PERIOD, 1400)]
+    fast = deskew(xyz, time, T, PERIOD)
+    ref = deskew(xyz, time, T, PERIOD, backend="numpy")
+    assert np.abs(fast - ref).max() < 1e-9
+    assert np.abs(fast - xyz).max() > 1e-3  # the motion moved the points
+
+
+def test_compiled_deskew_on_simulated_scan(corridor_short):
+    from slam.io.source import open_source
+    from slam.types import Scan
+
+    scan = next(s for s in open_source(corridor_short.bag) if isinstance(s, Scan))
+    assert scan.time is not None and len(scan) > 20000
+    T = pose([0.0, 0.0, np.radians(3.0)], [0.15, 0.0, 0.0])
+    fast = deskew(scan.xyz, scan.time, T, PERIOD)
+    ref = deskew(scan.xyz, scan.time, T, PERIOD, backend="numpy")
+    assert np.abs(fast - ref).max() < 1e-9
+    with pytest.raises(ConfigError):
+        deskew(scan.xyz, scan.time, T, PERIOD, backend="cuda")
