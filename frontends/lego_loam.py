@@ -1,0 +1,203 @@
+"""LeGO-LOAM (Shan and Englot 2018), the baseline of paper 001: range-image ground marking
+and segmentation -> LOAM features of the segmented cloud (edges from non-ground segments
+only, planes from the ground and the segments) -> two-step Levenberg-Marquardt ([roll,
+pitch, z] from the ground, [yaw, x, y] from the edges) -> 6-DoF scan-to-map refinement
+(LeGO's mapping) against edge and plane local maps. No preprocessing.
+
+The two LeGO stages (scan-to-scan odometry at 10 Hz, scan-to-map mapping at 2 Hz) are one
+here: the two-step solve starts from the constant-velocity prediction against the local
+maps and the refinement follows at once, at every frame (the framework's front ends are
+scan-to-map). Curvature, NMS and sector picks are the framework's LOAM features
+(``slam.features.loam``) run on the segmented cloud, whose dropped clusters no longer
+produce edges.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
+from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
+from slam.features.range_image_segmentation import Segmentation, SegmentationConfig, segment
+from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.preprocess.voxel import voxel_downsample
+from slam.registration.feature_icp import FeatureTarget
+from slam.registration.two_step import TwoStepConfig, two_step_align
+from slam.types import Scan
+
+
+@dataclass
+class LegoFeatureConfig:
+    """Segmentation + features. edge_voxel / plane_voxel / ground_voxel (m): thinning of
+    each feature set before matching and insertion into the maps."""
+
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    edge_voxel: float = 0.2
+    plane_voxel: float = 0.4
+    ground_voxel: float = 0.4
+
+
+@dataclass
+class LegoFeatures:
+    """Sensor-frame feature sets of one sweep: ground (plane points on the ground), edges
+    (non-ground), planes (non-ground), each voxel-thinned; ``segmented``: (N,) bool mask of
+    the points kept by the segmentation; ``seg``: the segmentation itself."""
+
+    ground: np.ndarray
+    edges: np.ndarray
+    planes: np.ndarray
+    segmented: np.ndarray
+    seg: Segmentation
+
+
+def lego_features(
+    xyz: np.ndarray,
+    ring: np.ndarray,
+    cfg: LegoFeatureConfig | None = None,
+    *,
+    ground: np.ndarray | None = None,
+) -> LegoFeatures:
+    """LeGO-LOAM's feature extraction of one sweep: segmentation (``ground`` (N,) bool from
+    elsewhere replaces the slope test), then LOAM curvature features on the segmented cloud;
+    edges must not be ground (LeGO-LOAM), ground plane points and non-ground plane points
+    are kept apart for the two-step matching."""
+    cfg = cfg or LegoFeatureConfig()
+    seg = segment(xyz, ring, cfg.segmentation, ground=ground)
+    keep = np.flatnonzero(seg.segmented)
+    f = extract_features(xyz[keep], np.asarray(ring)[keep], cfg.features)
+    e = keep[f.edge_idx]
+    p = keep[f.plane_idx]
+    e = e[~seg.ground[e]]
+    g, pl = p[seg.ground[p]], p[~seg.ground[p]]
+
+    def thin(idx: np.ndarray, voxel: float) -> np.ndarray:
+        pts = xyz[idx]
+        return pts[voxel_downsample(pts, voxel)] if len(pts) else pts.reshape(0, 3)
+
+    return LegoFeatures(
+        ground=thin(g, cfg.ground_voxel),
+        edges=thin(e, cfg.edge_voxel),
+        planes=thin(pl, cfg.plane_voxel),
+        segmented=seg.segmented,
+        seg=seg,
+    )
+
+
+def _edge_map() -> LocalMapConfig:
+    return LocalMapConfig(voxel_size=0.2, max_points_per_voxel=2)
+
+
+def _plane_map() -> LocalMapConfig:
+    return LocalMapConfig(voxel_size=0.4, max_points_per_voxel=2)
+
+
+@dataclass
+class LegoLoamConfig(CommonConfig):
+    """LeGO-LOAM settings: segmentation, features, thinning (see ``LegoFeatureConfig``), the
+    two-step matcher and the edge / plane local maps (the plane map holds ground and
+    non-ground plane points, LeGO's surface map)."""
+
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    edge_voxel: float = 0.2
+    plane_voxel: float = 0.4
+    ground_voxel: float = 0.4
+    registration: TwoStepConfig = field(default_factory=TwoStepConfig)
+    edge_map: LocalMapConfig = field(default_factory=_edge_map)
+    plane_map: LocalMapConfig = field(default_factory=_plane_map)
+
+    def feature_config(self) -> LegoFeatureConfig:
+        return LegoFeatureConfig(
+            self.segmentation, self.features, self.edge_voxel, self.plane_voxel, self.ground_voxel
+        )
+
+
+class LegoLoam(ScanToMapFrontend):
+    """LeGO-LOAM front end (plugin name ``lego_loam``)."""
+
+    Config = LegoLoamConfig
+
+    def __init__(self, cfg: LegoLoamConfig | None = None):
+        self.cfg = cfg or self.Config()
+        super().__init__(self.cfg)
+        self.edge_map = self._new_map(self.cfg.edge_map)
+        self.plane_map = self._new_map(self.cfg.plane_map)
+
+    # ------------------------------------------------------------------ hooks for LPB
+    def _new_map(self, cfg: LocalMapConfig):
+        return VoxelHashMap(cfg)
+
+    def _targets(self) -> tuple[FeatureTarget, FeatureTarget]:
+        return (
+            FeatureTarget(self.edge_map.points, self.edge_map.tree()),
+            FeatureTarget(self.plane_map.points, self.plane_map.tree()),
+        )
+
+    def _features(self, scan: Scan, extras: dict, timings: dict) -> tuple[Scan, LegoFeatures]:
+        """Preprocessing (none in LeGO-LOAM) and features of the cropped, deskewed scan."""
+        t = time.perf_counter()
+        ring = self._ring(scan)
+        feats = lego_features(scan.xyz, ring, self.cfg.feature_config())
+        timings["features_ms"] = (time.perf_counter() - t) * 1e3
+        return scan, feats
+
+    def _ground_plane_odom(self) -> tuple[np.ndarray, float] | None:
+        """The previous frame's ground plane in the odometry frame (LPB), None here."""
+        return None
+
+    # ------------------------------------------------------------------ the frame
+    def _ring(self, scan: Scan) -> np.ndarray:
+        if scan.ring is not None:
+            return np.asarray(scan.ring)
+        return ring_from_elevation(scan.xyz, self.cfg.features.n_beams, self.cfg.features.fov_deg)
+
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
+        cfg = self.cfg
+        extras: dict = {}
+        scan, f = self._features(scan, extras, timings)
+        extras.update(
+            n_edges=int(len(f.edges)),
+            n_planes=int(len(f.planes) + len(f.ground)),
+            n_ground=int(len(f.ground)),
+            n_clusters=f.seg.n_clusters,
+            n_segmented=int(f.segmented.sum()),
+            _filtered_xyz=scan.xyz[f.segmented],
+        )
+        if len(f.edges) + len(f.planes) + len(f.ground) < 10:
+            extras["skipped"] = f"too few features ({len(f.edges) + len(f.planes)})"
+            return Estimate(T_pred, extras=extras)
+        t = time.perf_counter()
+        est = Estimate(T_pred, extras=extras)
+        if len(self.edge_map) + len(self.plane_map) >= 10:
+            e_map, p_map = self._targets()
+            rc = cfg.registration
+            plane = self._ground_plane_odom()
+            T0 = T_pred
+            if wide:  # tracking lost: a coarse pass from the prediction with a wider search
+                k = cfg.recovery_correspondence_factor
+                coarse = replace(
+                    rc,
+                    max_neighbor_distance=rc.max_neighbor_distance * k,
+                    plane_threshold=rc.plane_threshold * k,
+                )
+                T0 = two_step_align(
+                    f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane
+                ).T_target_source
+            res = two_step_align(f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane)
+            est = Estimate.from_registration(res, extras)
+        est.pending = (f.edges, np.concatenate([f.ground, f.planes]))
+        timings["registration_ms"] = (time.perf_counter() - t) * 1e3
+        return est
+
+    def _map_size(self) -> int:
+        return len(self.edge_map) + len(self.plane_map)
+
+    def _insert(self, est: Estimate, timings: dict) -> None:
+        edges, planes = est.pending
+        T = est.pose
+        self.edge_map.add(edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+        self.plane_map.add(planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
