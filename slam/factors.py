@@ -46,7 +46,9 @@ class FactorConfig:
 
 
 class GraphView:
-    """Read-only access for plugins: keyframes so far and the current pose estimates."""
+    """Read-only access for plugins: keyframes so far, their clouds and the current pose
+    estimates. Plugins keep keyframe ids, not copies of clouds: ``cloud(kf_id)`` is the one
+    stored copy (O(1))."""
 
     def __init__(self, keyframes: Sequence[Keyframe], estimate: Callable[[int], np.ndarray]):
         self._keyframes = keyframes
@@ -62,6 +64,11 @@ class GraphView:
     def estimate(self, kf_id: int) -> np.ndarray:
         """Current best T_world_sensor (4x4) of keyframe ``kf_id``."""
         return self._estimate(kf_id)
+
+    def cloud(self, kf_id: int) -> np.ndarray:
+        """Keyframe ``kf_id``'s stored cloud: (N, 3) float32 m in its sensor frame,
+        voxel-thinned by the front end, read-only (shared, not copied)."""
+        return self._keyframes[kf_id].cloud
 
 
 @runtime_checkable

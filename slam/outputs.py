@@ -6,6 +6,7 @@ import json
 import logging
 import resource
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -36,16 +37,35 @@ def peak_memory_mb() -> float:
     return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
 
 
-def build_map(pipeline: Pipeline) -> np.ndarray:
-    """Keyframe clouds transformed by the optimised keyframe poses, stacked (M,3) world frame."""
+def build_map(pipeline: Pipeline, voxel: float | None = None) -> np.ndarray:
+    """The map (M, 3) m in the world frame: voxel centroids (cell ``voxel`` m, default
+    ``output.map_voxel``; <= 0 keeps every point) of the keyframe clouds placed by their
+    optimised poses, streamed keyframe by keyframe into a :class:`VoxelCentroidMap` (memory
+    bounded by the occupied voxels, not by the sum of the clouds)."""
+    from slam.io.maps import VoxelCentroidMap
+
     st = pipeline.state
-    parts = []
+    acc = VoxelCentroidMap(pipeline.config.output.map_voxel if voxel is None else voxel)
     for kf in st.keyframes:
-        if kf.cloud is None or len(kf.cloud) == 0:
-            continue
-        T = st.estimates.get(kf.id, kf.pose_odom)
-        parts.append(kf.cloud @ T[:3, :3].T + T[:3, 3])
-    return np.concatenate(parts) if parts else np.zeros((0, 3))
+        if kf.cloud is not None and len(kf.cloud):
+            acc.add_transformed(kf.cloud, st.estimates.get(kf.id, kf.pose_odom))
+    if acc.dropped:
+        log.warning("map: %d points beyond the voxel key range dropped", acc.dropped)
+    return acc.centroids()
+
+
+def _window_mean_ms(seconds: Any, first: bool, n: int = 100) -> float | None:
+    """Mean (ms) of the first or last ``n`` entries of a per-frame time series."""
+    values = np.asarray(seconds, dtype=float)
+    if len(values) == 0:
+        return None
+    part = values[:n] if first else values[-n:]
+    return round(1e3 * float(part.mean()), 3)
+
+
+def keyframe_cloud_mb(pipeline: Pipeline) -> float:
+    """MiB held by the stored keyframe clouds."""
+    return sum(kf.cloud.nbytes for kf in pipeline.state.keyframes) / 2**20
 
 
 def write_trajectories(pipeline: Pipeline, out: Path) -> list[Path]:
@@ -78,6 +98,19 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "loops_closed": st.loops_closed,
         "factors": dict(st.factor_counts),
         "seconds": {k: round(v, 4) for k, v in st.stage_seconds.items()},
+        # the slowest single call per stage (ms): front end per frame, each factor plugin
+        # and the back end per keyframe
+        "stage_ms_max": {k: round(1e3 * v, 3) for k, v in st.stage_max_seconds.items()},
+        # per-frame wall time of the whole pipeline step, start vs end of the run (ms)
+        "frame_ms_first100": _window_mean_ms(st.frame_seconds, first=True),
+        "frame_ms_last100": _window_mean_ms(st.frame_seconds, first=False),
+        "frame_ms_max": round(1e3 * max(st.frame_seconds), 3) if st.frame_seconds else None,
+        # back-end update per keyframe (ms): mean over the first / last 100 keyframes, max
+        "backend_ms_first100": _window_mean_ms(st.backend_seconds, first=True),
+        "backend_ms_last100": _window_mean_ms(st.backend_seconds, first=False),
+        "backend_ms_max": (round(1e3 * max(st.backend_seconds), 3) if st.backend_seconds else None),
+        "path_length_m": round(st.path_length, 2),
+        "keyframe_cloud_mb": round(keyframe_cloud_mb(pipeline), 2),
         "wall_seconds": round(st.wall_seconds, 3),
         "frames_per_second": round(st.frames / st.wall_seconds, 2) if st.wall_seconds else None,
         "frontend_frames_per_second": round(st.frames / fe, 2) if fe else None,
@@ -108,11 +141,14 @@ def write_outputs(
     st = pipeline.state
     if pipeline.config.output.write_map and st.keyframes:
         try:
-            from slam.io.maps import write_map
+            from slam.io.maps import write_points
 
+            t0 = time.perf_counter()
             name = MAP_PCD if pipeline.config.output.map_format == "pcd" else "map.ply"
-            write_map(out / name, build_map(pipeline), pipeline.config.output.map_voxel)
+            n_map = write_points(out / name, build_map(pipeline))
+            st.stage_seconds["map"] += time.perf_counter() - t0
             written["map"] = out / name
+            extra_metrics = {**(extra_metrics or {}), "map_points": n_map}
         except Exception as exc:  # noqa: BLE001 - a failed map must not lose the trajectories
             log.warning("map not written: %s", exc)
     if st.keyframes:

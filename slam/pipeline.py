@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from array import array
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -68,6 +69,12 @@ class RunState:
     stage_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     diagnostic_sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     diagnostic_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    # per-frame wall time (s) of step() and back-end update time (s) per keyframe: compact
+    # arrays (8 bytes an entry), so that metrics can compare the start and end of a run
+    frame_seconds: array = field(default_factory=lambda: array("d"))
+    backend_seconds: array = field(default_factory=lambda: array("d"))
+    stage_max_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    path_length: float = 0.0  # odometric distance travelled (m), summed frame to frame
     skipped_frames: int = 0  # frames the front end could not register (prediction kept)
     skipped_messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     degenerate_frames: int = 0
@@ -107,6 +114,29 @@ class RunState:
             return np.zeros((0, 4, 4))
         kf_poses = np.stack([self.estimates[k] for k in self.frame_kf])
         return kf_poses @ np.stack(self.T_kf_frame)
+
+
+def keyframe_cloud(cloud: np.ndarray | None) -> np.ndarray:
+    """The one stored copy of a keyframe's cloud: (N, 3) float32, C-contiguous, read-only.
+
+    The front end's ``Odometry.cloud`` is already voxel-thinned; a float32 contiguous cloud
+    is kept as it is (no copy), anything else is converted once. Read-only because factor
+    plugins share it (``GraphView.cloud``) instead of keeping copies.
+    """
+    if cloud is None or len(cloud) == 0:
+        out = np.zeros((0, 3), dtype=np.float32)
+    else:
+        out = np.ascontiguousarray(np.asarray(cloud)[:, :3], dtype=np.float32)
+    out = out.view()
+    out.flags.writeable = False
+    return out
+
+
+def scalar_extras(extras: dict[str, Any]) -> dict[str, Any]:
+    """The front end's per-frame diagnostics a keyframe keeps: scalars only (numbers, bools,
+    strings), never arrays or private ``_`` entries (they would hold scans in memory)."""
+    keep = (bool, int, float, str, np.generic)
+    return {k: v for k, v in extras.items() if isinstance(v, keep) and not k.startswith("_")}
 
 
 class Pipeline:
@@ -202,11 +232,12 @@ class Pipeline:
 
     # ------------------------------------------------------------------ per frame
     def step(self, scan: Scan) -> None:
-        """Process one scan through front end, factor plugins and back end."""
+        """Process one scan through front end, factor plugins and back end (O(1) per frame:
+        nothing here scans the frames or keyframes so far)."""
         st = self.state
         t0 = time.perf_counter()
         odom = self.frontend.process(scan)
-        st.stage_seconds["frontend"] += time.perf_counter() - t0
+        self._timed("frontend", time.perf_counter() - t0)
         if odom.extras.get("skipped"):
             st.skipped_frames += 1
         if odom.extras.get("degenerate"):
@@ -215,16 +246,24 @@ class Pipeline:
         if odom.is_keyframe or not st.keyframes:
             self._add_keyframe(scan, odom)
         kf = st.keyframes[-1]
+        pose = np.asarray(odom.pose, dtype=float)
+        if st.odom_poses:
+            st.path_length += float(np.linalg.norm(pose[:3, 3] - st.odom_poses[-1][:3, 3]))
         # appended together so that an interrupt never leaves the per-frame lists ragged
         st.stamps.append(float(scan.stamp))
-        st.odom_poses.append(np.asarray(odom.pose, dtype=float))
+        st.odom_poses.append(pose)
         st.frame_kf.append(kf.id)
-        st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, odom.pose))
+        st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, pose))
+        st.frame_seconds.append(time.perf_counter() - t0)
+
+    def _timed(self, stage: str, seconds: float) -> None:
+        st = self.state
+        st.stage_seconds[stage] += seconds
+        st.stage_max_seconds[stage] = max(st.stage_max_seconds[stage], seconds)
 
     def _add_keyframe(self, scan: Scan, odom: Any) -> None:
         st = self.state
         kf_id = len(st.keyframes)
-        cloud = odom.cloud if odom.cloud is not None else np.zeros((0, 3))
         kf = Keyframe(
             id=kf_id,
             stamp=float(scan.stamp),
@@ -232,8 +271,8 @@ class Pipeline:
             pose_odom=np.asarray(odom.pose, dtype=float),
             relative=np.asarray(odom.relative, dtype=float),
             info=np.asarray(odom.info, dtype=float),
-            cloud=np.asarray(cloud, dtype=float),
-            extras=dict(odom.extras),
+            cloud=keyframe_cloud(odom.cloud),
+            extras=scalar_extras(odom.extras),
         )
         if kf_id == 0:
             initial_T = kf.pose_odom
@@ -246,7 +285,7 @@ class Pipeline:
         for source in self.factor_sources:
             t0 = time.perf_counter()
             new = list(source.plugin.on_keyframe(kf, self.view))
-            st.stage_seconds[f"factor:{source.name}"] += time.perf_counter() - t0
+            self._timed(f"factor:{source.name}", time.perf_counter() - t0)
             st.factor_counts[source.name] += len(new)
             if new and source.is_loop:
                 loop_closed = True
@@ -254,7 +293,9 @@ class Pipeline:
             factors.extend(new)
         t0 = time.perf_counter()
         self.backend.update(factors, {kf_id: pose3(initial_T)}, loop_closed=loop_closed)
-        st.stage_seconds["backend"] += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        self._timed("backend", dt)
+        st.backend_seconds.append(dt)
         self._estimate_cache = {}
         self._pending = None
 

@@ -68,7 +68,8 @@ class Odometry:
     the previous keyframe (identity for the first frame). info: 6x6 information of
     ``relative`` (rotation first), scaled to a plausible covariance. cloud: the scan's
     points in the sensor frame after deskew/filtering (voxel-thinned), kept by the pipeline
-    for keyframes; front ends may leave it empty on other frames.
+    for keyframes (float32 is stored as given; other dtypes are converted once); front
+    ends may leave it empty on other frames.
     extras: diagnostics (feature counts, iterations, fitness, degenerate, ...).
     """
 
@@ -87,7 +88,10 @@ class Keyframe:
 
     id: 0, 1, 2, ... in order. frame_index: index of the input scan. pose_odom:
     T_odom_sensor from the front end. relative/info: motion from the previous keyframe and
-    its information (None/identity for id 0). cloud: (N, 3) sensor-frame points.
+    its information (None/identity for id 0). cloud: (N, 3) sensor-frame points, m; the
+    pipeline stores it once, float32, voxel-thinned and read-only (the one copy of the run:
+    plugins read it through ``GraphView.cloud`` instead of copying it). extras: the front
+    end's scalar diagnostics of that frame (no arrays).
     """
 
     id: int
