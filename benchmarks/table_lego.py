@@ -330,6 +330,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", default="runs/table_lego")
     ap.add_argument("--figures", help="folder for the paper-style figures (e.g. docs/lego_lpb)")
+    ap.add_argument(
+        "--cache-dir",
+        help="where the simulated sequences are cached (default <out>/sim: a private cache, "
+        "so that no other process's pruning of ~/.cache removes them mid-run)",
+    )
     ap.add_argument("--plan-only", action="store_true", help="only draw the floor plan")
     args = ap.parse_args(argv)
     if args.figures:
@@ -346,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     jobs = []
     for scene in args.scenes:
-        seq = ensure_sequence(scene)  # the whole route; --frames truncates the runs
+        # The whole route (--frames truncates the runs), simulated once.
+        seq = ensure_sequence(scene, cache_dir=Path(args.cache_dir or out / "sim"))
         jobs += jobs_for(scene, seq, configs, args.frames, out, not args.no_ablation)
     for job in jobs:
         job["reuse"] = args.reuse
