@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+SMALL = 32  # clusters of at most this many NMS candidates are sorted by insertion
+
 
 @njit(cache=True)
 def _merge_runs(idx, key, bounds, n_runs, buf_i, buf_k):
@@ -180,6 +182,7 @@ def loam_scores(
     L = 2 * w + 2
     cb = np.zeros((L, 3))
     j_done = 0
+    cur = 0  # = j_done % L (no integer modulo in the loop)
     m = float(2 * w + 1)
     gap_prev = np.inf  # squared gap (m^2) from the previous point of the ring
     run_id = 0
@@ -193,14 +196,18 @@ def loam_scores(
         nr = r1 - r0
         hi = min(k + w + 1, n)
         while j_done < hi:
-            s, t, q = (j_done + 1) % L, j_done % L, order[j_done]
-            cb[s, 0] = cb[t, 0] + xyz[q, 0]
-            cb[s, 1] = cb[t, 1] + xyz[q, 1]
-            cb[s, 2] = cb[t, 2] + xyz[q, 2]
+            nxt = cur + 1 if cur + 1 < L else 0
+            q = order[j_done]
+            cb[nxt, 0] = cb[cur, 0] + xyz[q, 0]
+            cb[nxt, 1] = cb[cur, 1] + xyz[q, 1]
+            cb[nxt, 2] = cb[cur, 2] + xyz[q, 2]
+            cur = nxt
             j_done += 1
         x0, x1, x2 = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         if pos >= w and pos < nr - w:
-            lo, up = (k - w) % L, hi % L
+            # hi = k + w + 1 here: csum[hi] is the newest slot, csum[k - w] the one after it
+            up = cur
+            lo = cur + 1 if cur + 1 < L else 0
             d0 = cb[up, 0] - cb[lo, 0] - m * x0
             d1 = cb[up, 1] - cb[lo, 1] - m * x1
             d2 = cb[up, 2] - cb[lo, 2] - m * x2
@@ -255,25 +262,39 @@ def greedy_nms(key, cand, run, w):
     n = len(key)
     picked = np.zeros(n, dtype=np.bool_)
     blocked = np.zeros(n, dtype=np.bool_)
+    visit = np.empty(SMALL, dtype=np.int64)
     a = 0
     while a < len(ci):
         b = a + 1
         while b < len(ci) and ci[b] - ci[b - 1] <= w and run[ci[b]] == run[ci[a]]:
             b += 1
-        if b - a == 1:
+        m = b - a
+        if m == 1:
             picked[ci[a]] = True
+            a = b
+            continue
+        seg = ci[a:b]
+        if m <= SMALL:  # insertion sort by decreasing key, ties by position (stable)
+            for j in range(m):
+                v = seg[j]
+                t = j
+                while t > 0 and key[visit[t - 1]] < key[v]:
+                    visit[t] = visit[t - 1]
+                    t -= 1
+                visit[t] = v
+            order = visit[:m]
         else:
-            seg = ci[a:b]
-            neg = np.empty(b - a)
-            for j in range(b - a):
+            neg = np.empty(m)
+            for j in range(m):
                 neg[j] = -key[seg[j]]
-            for i in seg[stable_argsort(neg)]:
-                if blocked[i]:
-                    continue
-                picked[i] = True
-                for j in range(max(i - w, seg[0]), min(i + w, seg[-1]) + 1):
-                    if run[j] == run[i]:
-                        blocked[j] = True
+            order = seg[stable_argsort(neg)]
+        for i in order:
+            if blocked[i]:
+                continue
+            picked[i] = True
+            for j in range(max(i - w, seg[0]), min(i + w, seg[-1]) + 1):
+                if run[j] == run[i]:
+                    blocked[j] = True
         a = b
     return np.flatnonzero(picked)
 
