@@ -63,6 +63,22 @@ def _window_mean_ms(seconds: Any, first: bool, n: int = 100) -> float | None:
     return round(1e3 * float(part.mean()), 3)
 
 
+def plugin_stats(pipeline: Pipeline) -> dict[str, Any]:
+    """``stats()`` of every factor plugin that has one (a failing one is left out)."""
+    out: dict[str, Any] = {}
+    for source in pipeline.factor_sources:
+        stats = getattr(source.plugin, "stats", None)
+        if callable(stats):
+            try:
+                out[source.name] = {
+                    k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v
+                    for k, v in dict(stats()).items()
+                }
+            except Exception as exc:  # noqa: BLE001 - diagnostics must not lose the run
+                log.warning("factor plugin %s: stats() failed: %s", source.name, exc)
+    return out
+
+
 def keyframe_cloud_mb(pipeline: Pipeline) -> float:
     """MiB held by the stored keyframe clouds."""
     return sum(kf.cloud.nbytes for kf in pipeline.state.keyframes) / 2**20
@@ -118,6 +134,9 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "frontend_means": {k: round(v, 4) for k, v in sorted(st.diagnostic_means().items())},
         "stopped_by": st.stopped_by,
         "sensor": st.sensor,
+        # each factor plugin's own counts and timings (``stats()``, e.g. the loop plugin's
+        # detect/verify ms), by the name it was configured under
+        "factor_stats": plugin_stats(pipeline),
         **(extra or {}),
     }
 

@@ -199,3 +199,33 @@ def test_per_frame_work_does_not_look_at_the_whole_graph():
     # the whole estimate while running: cost per frame independent of the run's length
     assert backend.pose_calls == 59 and backend.estimate_calls == 0
     assert len(pipe.state.frame_seconds) == 60 and len(pipe.state.backend_seconds) == 60
+
+
+class StatsPlugin:
+    """A factor plugin that reports its own timings (as the loop plugin does)."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def on_keyframe(self, kf, graph):
+        self.calls += 1
+        assert graph.cloud(kf.id) is kf.cloud
+        return []
+
+    def stats(self):
+        return {"calls": self.calls, "detect_ms_mean": np.float64(1.23456)}
+
+
+def test_metrics_carry_each_factor_plugins_stats(tmp_path):
+    from slam.pipeline import FactorSource
+
+    pipe = Pipeline(
+        SlamConfig(),
+        frontend=CloudFrontend(n_points=10),
+        factor_sources=[FactorSource("mine", StatsPlugin())],
+    )
+    pipe.run(_scans(7))
+    write_outputs(pipe, tmp_path, resolved_config={})
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["factor_stats"] == {"mine": {"calls": 7, "detect_ms_mean": 1.2346}}
+    assert m["seconds"]["factor:mine"] >= 0 and "factor:mine" in m["stage_ms_max"]

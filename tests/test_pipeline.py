@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -102,8 +104,10 @@ def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
     stamps, traj = read_tum(written["trajectory.tum"])
     assert len(stamps) == 25
     assert np.abs(traj[:, :3, 3] - poses[:25, :3, 3]).max() < 1e-6
-    for name in ("odometry.tum", "trajectory.kitti", "metrics.json", "config.yaml"):
+    for name in ("odometry.tum", "trajectory.kitti", "metrics.json", "config.yaml", "map.pcd"):
         assert (tmp_path / name).stat().st_size > 0
+    # the map holds the keyframes seen before the stop (streamed from their clouds)
+    assert json.loads((tmp_path / "metrics.json").read_text())["map_points"] > 50 * 5
 
 
 def test_disabled_factor_plugin_is_not_built():
