@@ -1,6 +1,7 @@
-"""The compiled LOAM feature kernels (slam/features/loam_kernels.py) against the numpy
-reference they replace: identical edge/plane indices, curvature and kappa on simulated
-16- and 64-beam scans, real KITTI-raw HDL-64E scans and edge cases."""
+"""The compiled LOAM feature kernels (slam/features/loam_kernels.py) and the kappa kernel
+(slam/features/curvature.py) against the numpy references they replace: identical edge/plane
+indices, curvature and kappa on simulated 16- and 64-beam scans, real KITTI-raw HDL-64E scans
+and edge cases."""
 
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ from shared_data import shared_path
 
 from slam.errors import ConfigError
 from slam.features import loam_kernels as kern
+from slam.features.curvature import kappa_from_neighbours
 from slam.features.loam import FeatureConfig, _greedy_nms, extract_features
 from slam.io.folders import cloud_files, read_cloud
 from slam.io.source import open_source
+from slam.preprocess.knn import knn
 from slam.sensor import beams_from_rings, estimate_beams
 from slam.types import Scan
 
@@ -189,3 +192,24 @@ def test_greedy_nms_kernel_equals_parallel_reference(seed):
     for w in (1, 5):
         fast = kern.greedy_nms(key, cand, run.astype(np.int32), w)  # int32 as from loam_scores
         assert np.array_equal(fast, _greedy_nms(key, cand, run, w))
+
+
+def test_kappa_kernel_equals_numpy_reference(kitti_scans):
+    xyz = kitti_scans[0].xyz
+    q = np.random.default_rng(0).choice(len(xyz), 3000, replace=False)
+    idx, _ = knn(xyz, xyz[q], 10)
+    fast = kappa_from_neighbours(xyz, q, idx)
+    ref = kappa_from_neighbours(xyz, q, idx, backend="numpy")
+    assert np.abs(fast - ref).max() < 1e-12
+    assert 1.0 <= fast.min() and fast.max() <= np.sqrt(3) + 1e-12
+    assert np.median(fast) > 1.1  # real neighbourhoods are not all lines
+    # degenerate neighbourhoods (all points equal: 1 by definition) and k = 1
+    same = np.zeros((5, 3))
+    nb = np.zeros((5, 4), dtype=np.int64)
+    assert np.array_equal(kappa_from_neighbours(same, np.arange(5), nb), np.ones(5))
+    one = idx[:, :1]
+    assert np.array_equal(
+        kappa_from_neighbours(xyz, q, one), kappa_from_neighbours(xyz, q, one, backend="numpy")
+    )
+    with pytest.raises(ConfigError):
+        kappa_from_neighbours(xyz, q, idx, backend="cuda")

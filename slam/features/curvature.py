@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
-from slam.errors import InputError
+from slam.errors import ConfigError, InputError
 from slam.preprocess.knn import knn
 
 KAPPA_LINE = 1.0
@@ -53,9 +54,52 @@ def covariance_curvature(
     return kappa_from_neighbours(xyz, q, idx)
 
 
-def kappa_from_neighbours(xyz: np.ndarray, q: np.ndarray, idx: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _kappa_kernel(xyz, q, idx):
+    """``kappa_from_neighbours`` per query point in one pass (same formulas)."""
+    m_all, k = idx.shape
+    out = np.empty(m_all)
+    for m in range(m_all):
+        c0, c1, c2 = xyz[q[m], 0], xyz[q[m], 1], xyz[q[m], 2]
+        s0 = s1 = s2 = 0.0
+        xx = yy = zz = xy = xz = yz = 0.0
+        for j in range(k):
+            n = idx[m, j]
+            d0, d1, d2 = xyz[n, 0] - c0, xyz[n, 1] - c1, xyz[n, 2] - c2
+            s0 += d0
+            s1 += d1
+            s2 += d2
+            xx += d0 * d0
+            yy += d1 * d1
+            zz += d2 * d2
+            xy += d0 * d1
+            xz += d0 * d2
+            yz += d1 * d2
+        xx -= s0 * s0 / k
+        yy -= s1 * s1 / k
+        zz -= s2 * s2 / k
+        xy -= s0 * s1 / k
+        xz -= s0 * s2 / k
+        yz -= s1 * s2 / k
+        fro = np.sqrt(xx**2 + yy**2 + zz**2 + 2.0 * (xy**2 + xz**2 + yz**2))
+        out[m] = (xx + yy + zz) / fro if fro > 0 else 1.0
+    return out
+
+
+def kappa_from_neighbours(
+    xyz: np.ndarray, q: np.ndarray, idx: np.ndarray, *, backend: str = "numba"
+) -> np.ndarray:
     """kappa of xyz[q] (M,) from its (M, k) neighbour indices into xyz (itself included),
-    e.g. the neighbourhoods SOR already searched."""
+    e.g. the neighbourhoods SOR already searched. backend: "numba" (default, one compiled
+    pass) or "numpy" (the vectorised reference); they agree to rounding (~1e-15)."""
+    if backend not in ("numba", "numpy"):
+        raise ConfigError(f"kappa: backend must be 'numba' or 'numpy', got {backend!r}")
+    if backend == "numba" and idx.ndim == 2 and idx.shape[1] > 0:
+        return _kappa_kernel(
+            np.ascontiguousarray(xyz, dtype=np.float64),
+            np.ascontiguousarray(q, dtype=np.int64),
+            np.ascontiguousarray(idx, dtype=np.int64),
+        )
     k_eff = idx.shape[1]
     idx_t = np.ascontiguousarray(idx.T)  # (k, M): reductions over k become row adds
     cols = [np.ascontiguousarray(xyz[:, a]) for a in range(3)]
