@@ -42,6 +42,9 @@ BASELINE = "lego_loam"
 FULL = "lego_lpb"
 COLUMNS = ("Max", "Mean", "Median", "RMSE", "Std")  # the paper's Table 1
 NOT_MODULES = ("prior", "odometry")
+# Modules switched off by a value rather than an ``enabled`` flag: (key path under
+# ``frontend``, label, value that switches it off).
+VALUE_SWITCHES = ((("registration", "ground_weight"), "no ground residual", 0.0),)
 
 
 # ----------------------------------------------------------------------------- jobs
@@ -80,6 +83,12 @@ def ablation_overrides(name: str = FULL) -> list[tuple[str, list[str]]]:
                 walk(value, path + [key])
 
     walk(resolved["frontend"], ["frontend"])
+    for path, label, off in VALUE_SWITCHES:
+        node = resolved["frontend"]
+        for key in path:
+            node = node.get(key) if isinstance(node, dict) else None
+        if node not in (None, off):
+            out.append((label, [f"frontend.{'.'.join(path)}={off}"]))
     for fname, params in resolved["factors"].items():
         if fname not in NOT_MODULES and params.get("enabled", True):
             out.append((f"no {fname} factor", [f"factors.{fname}.enabled=false"]))
