@@ -155,8 +155,8 @@ class ImprovedFloam(ScanToMapFrontend):
         t = time.perf_counter()
         est = Estimate(T_pred, extras=extras)
         if len(self.map) >= 10:
-            target = GicpTarget(self.map.points, self.map.covs, self.map.tree())
-            timings["map_tree_ms"] = (time.perf_counter() - t) * 1e3
+            # the map answers the nearest-neighbour queries through its voxel hash: no KD-tree
+            target = GicpTarget(self.map.points, self.map.covs, tree=self.map)
             T0 = T_pred
             if wide:  # tracking lost: coarse pass from the prediction with a wider search
                 d = rc.max_correspondence * cfg.recovery_correspondence_factor
@@ -182,11 +182,10 @@ class ImprovedFloam(ScanToMapFrontend):
         if cfg.map_covariance == "map" and n_new and len(self.map) >= rc.k_covariance:
             # eq. (1) on the map: the new points and every map point having one of them among
             # its k neighbours get their covariance (re)computed from the current map
-            tree = self.map.tree()
             new = np.arange(len(self.map) - n_new, len(self.map))
             dirty = new
             if cfg.map_refresh == "neighbours":
-                _, nb = tree.query(self.map.points[new], k=rc.k_covariance, workers=rc.threads)
+                _, nb = self.map.query(self.map.points[new], k=rc.k_covariance)
                 dirty = np.unique(np.concatenate([new, nb.ravel()]))
             self.map.covs[dirty] = estimate_covariances(
                 self.map.points,
@@ -194,7 +193,7 @@ class ImprovedFloam(ScanToMapFrontend):
                 rc.lambda_reg,
                 rc.covariance_mode,
                 query=self.map.points[dirty],
-                tree=tree,
+                tree=self.map,
                 plane_epsilon=rc.plane_epsilon,
                 line_ratio=rc.line_ratio,
                 threads=rc.threads,
