@@ -135,6 +135,7 @@ def test_edge_cases():
     # empty input, nothing usable, no ring at all
     assert_same(np.empty((0, 3)), np.empty(0, dtype=np.int16))
     assert_same(xyz, np.full(len(xyz), -1))
+    assert_same(xyz, np.full(len(xyz), -5, dtype=np.int8))
     assert_same(xyz, None)
     # empty rings (ids 0, 3, 7 only), negative rings skipped, wide ring dtypes
     sparse = np.array([0, 3, -1, 7, 3, 0])[ring]

@@ -376,7 +376,10 @@ def _extract_features_numba(
     from slam.features import loam_kernels as kern  # numba is imported on first use only
 
     n_all = len(xyz)
-    if ring.dtype.kind not in "iub" or (n_all and ring.max() >= 2**16):
+    if ring.dtype.kind not in "iub":
+        return None
+    ring_max = max(int(ring.max()), 0) if n_all else 0
+    if ring_max >= 2**16:
         return None
     if azimuth_order is None:
         key = np.arctan2(xyz[:, 1], xyz[:, 0])  # numpy's atan2: the reference's rounding
@@ -384,7 +387,7 @@ def _extract_features_numba(
         key = np.ascontiguousarray(azimuth_order, dtype=np.float64)
     xyz = np.ascontiguousarray(xyz)
     order, start = kern.ring_order(
-        xyz, ring.astype(np.int64), key, float(cfg.min_range), float(cfg.max_range)
+        xyz, ring.astype(np.int64), key, float(cfg.min_range), float(cfg.max_range), ring_max
     )
     use_kappa = cfg.use_covariance_curvature and n_all >= 2
     kappa_all = np.full(n_all, np.nan) if use_kappa else None

@@ -107,28 +107,27 @@ def stable_argsort(key):
 
 
 @njit(cache=True)
-def ring_order(xyz, ring, key, min_range, max_range):
+def ring_order(xyz, ring, key, min_range, max_range, ring_max):
     """The points to use (ring >= 0, range in [min_range, max_range] m) sorted by
     (ring, key, index): their indices and the start of each non-empty ring (R + 1,) in that
-    order. Empty order when a used point has a NaN key (the caller falls back to the
-    reference)."""
+    order. ring_max >= every ring id. Empty order when a used point has a NaN key (the
+    caller falls back to the reference)."""
     n_all = len(ring)
     use = np.zeros(n_all, dtype=np.bool_)
+    counts = np.zeros(ring_max + 2, dtype=np.int64)
     r_max = -1
     nan_key = False
     for i in range(n_all):
         x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         d = np.sqrt((x * x + y * y) + z * z)  # = np.linalg.norm(xyz, axis=1)
-        if ring[i] >= 0 and d >= min_range and d <= max_range:
+        r = ring[i]
+        if r >= 0 and d >= min_range and d <= max_range:
             use[i] = True
-            r_max = max(r_max, ring[i])
+            counts[r + 1] += 1
+            r_max = max(r_max, r)
             nan_key |= np.isnan(key[i])
     if nan_key or r_max < 0:
         return np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64)
-    counts = np.zeros(r_max + 2, dtype=np.int64)
-    for i in range(n_all):
-        if use[i]:
-            counts[ring[i] + 1] += 1
     n_dense = 0
     for r in range(r_max + 1):
         if counts[r + 1] > 0:
