@@ -24,3 +24,35 @@ def knn(
     tree = small_gicp.KdTree(points, num_threads=threads)
     idx, sq = tree.batch_knn_search(queries, k, num_threads=threads)
     return idx.astype(np.int64, copy=False), np.sqrt(sq)
+
+
+def self_knn(
+    xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None, threads: int = KNN_THREADS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's k nearest other points: (N, k+1) int64 indices, the point itself first,
+    and (N, k) distances (m) to the k others, ascending. Needs 1 <= k <= N - 1.
+
+    ring: (N,) beam index per point (``scan.ring``): the exact range-image search
+    (``slam.preprocess.range_image``, same distances as the KD-tree, same index sets up to
+    ties), with the KD-tree only for the points it cannot certify. Without ring: KD-tree.
+    """
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    if ring is None:
+        idx, dist = knn(xyz, xyz, k + 1, threads)
+        return idx, dist[:, 1:]
+    from slam.preprocess.range_image import range_image_knn
+
+    res = range_image_knn(xyz, ring, k)
+    n = len(xyz)
+    idx = np.empty((n, k + 1), dtype=np.int64)
+    idx[:, 0] = np.arange(n)
+    idx[:, 1:] = res.idx
+    dist = res.dist
+    bad = np.flatnonzero(~res.certified)
+    if len(bad):
+        fb_idx, fb_dist = knn(xyz, xyz[bad], k + 1, threads)
+        others = fb_idx != bad[:, None]  # drop the point itself, or the (k+1)-th if absent
+        others[others.all(axis=1), -1] = False
+        idx[bad, 1:] = fb_idx[others].reshape(-1, k)
+        dist[bad] = fb_dist[others].reshape(-1, k)
+    return idx, dist

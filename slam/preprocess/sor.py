@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.errors import ConfigError, InputError
-from slam.preprocess.knn import knn
+from slam.preprocess.knn import knn, self_knn
 
 SOR_METHODS = ("weighted", "classic")
 
@@ -65,13 +65,18 @@ class Neighbourhoods:
 
 
 def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -> Neighbourhoods:
-    """k nearest other points of every point: one KD-tree build and one batch query.
+    """k nearest other points of every point.
 
-    ring: (N,) beam index of each point (``scan.ring``) when known; reserved for the exact
-    range-image search (same result as the KD-tree)."""
+    ring: (N,) beam index of each point (``scan.ring``) when known: the exact range-image
+    search (``slam.preprocess.range_image``; same distances as the KD-tree, same index sets
+    up to ties, ~10x faster on spinning-lidar scans). Without it: one KD-tree build and one
+    batch query."""
     k_eff = min(k, len(xyz) - 1)
-    idx, dist = knn(xyz, xyz, k_eff + 1)
-    return Neighbourhoods(idx, dist[:, 1:])
+    if k_eff < 1:
+        idx, dist = knn(xyz, xyz, k_eff + 1)
+        return Neighbourhoods(idx, dist[:, 1:])
+    idx, dist = self_knn(xyz, k_eff, ring=ring)
+    return Neighbourhoods(idx, dist)
 
 
 def knn_distances(xyz: np.ndarray, k: int) -> np.ndarray:

@@ -1,0 +1,93 @@
+"""Exact k-NN of a spinning-lidar scan through its range image (ring x azimuth).
+
+A scan is searched ring by ring outward from each point's ring and, within a ring, outward
+in azimuth, with a certificate that makes the answer exact: a point q on a ray at angle
+theta from p's ray is at least |p| sin(theta) from p (theta <= 90 deg), and the spherical
+law of haversines bounds theta from below by the elevation gap to the rings not searched
+(their measured per-point elevations, not the nominal beam table) and by the azimuth gap
+to the columns not searched. Once the k-th distance found is below that bound for every
+unsearched point, the window answer is the true k-NN (same distances as a KD-tree, same
+index sets up to ties). Points the window cannot certify within ``max_visits`` distance
+evaluations (isolated returns, points near the sensor axis) are reported so the caller can
+ask a KD-tree (``slam.preprocess.knn.self_knn`` does).
+
+The ring only steers the search; a wrong or coarse ring costs speed, never exactness.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.errors import InputError
+from slam.preprocess.range_image_kernels import sort_rings, window_knn
+
+MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-tree
+
+
+@dataclass(frozen=True)
+class RangeImageKnn:
+    """idx (N, k) int64 indices of each point's k nearest other points, dist (N, k) their
+    distances (m), ascending; certified (N,) True where the window answer is proven exact
+    (rows where it is False are not valid); visits (N,) distance evaluations per point."""
+
+    idx: np.ndarray
+    dist: np.ndarray
+    certified: np.ndarray
+    visits: np.ndarray
+
+    @property
+    def certified_rate(self) -> float:
+        """Share of the points answered by the window search."""
+        return float(self.certified.mean()) if len(self.certified) else 1.0
+
+
+def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
+    """(N,) rank of each point's ring among the rings present, ordered by their mean
+    elevation (rad), and the number of rings present. Any integer ring labels."""
+    ring = np.asarray(ring).astype(np.int64, copy=False)
+    r0 = int(ring.min())
+    ids = ring - r0
+    counts = np.bincount(ids)
+    present = np.flatnonzero(counts)
+    mean_el = np.bincount(ids, weights=el)[present] / counts[present]
+    lut = np.zeros(len(counts), dtype=np.int64)
+    lut[present[np.argsort(mean_el, kind="stable")]] = np.arange(len(present))
+    return lut[ids], len(present)
+
+
+def range_image_knn(
+    xyz: np.ndarray, ring: np.ndarray, k: int, *, max_visits: int = MAX_VISITS
+) -> RangeImageKnn:
+    """k nearest other points of each point of a scan (N, 3) m with beam index ring (N,),
+    searched in the range image with the exactness certificate (module doc). Needs
+    1 <= k <= N - 1."""
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    ring = np.asarray(ring)
+    n = len(xyz)
+    if ring.shape != (n,):
+        raise InputError(f"ring must have one entry per point ({n}), got shape {ring.shape}")
+    if not 1 <= k <= n - 1:
+        raise InputError(f"k-NN needs 1 <= k <= N - 1, got k={k} for {n} points")
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rho = np.hypot(x, y)
+    el = np.arctan2(z, rho)
+    az = np.where(rho > 0.0, np.arctan2(y, x), 0.0)
+    rank, n_rings = ring_ranks(ring, el)
+    order, start = sort_rings(rank, az, n_rings)
+    el_s = el[order]
+    lo = np.minimum.reduceat(el_s, start[:-1])
+    hi = np.maximum.reduceat(el_s, start[:-1])
+    safe = np.where(rho > 0.0, rho, 1.0)
+    cx = np.where(rho > 0.0, x / safe, 1.0)[order]
+    cy = np.where(rho > 0.0, y / safe, 0.0)[order]
+    idx = np.empty((n, k), dtype=np.int64)
+    d2 = np.empty((n, k))
+    certified = np.empty(n, dtype=np.bool_)
+    visits = np.empty(n, dtype=np.int64)
+    xyz_s, az_s = xyz[order], az[order]
+    window_knn(
+        xyz_s, el_s, cx, cy, order, start, az_s, lo, hi, k, max_visits, idx, d2, certified, visits
+    )
+    return RangeImageKnn(idx, np.sqrt(d2), certified, visits)
