@@ -79,6 +79,17 @@ def plugin_stats(pipeline: Pipeline) -> dict[str, Any]:
     return out
 
 
+def memory_per_km(pipeline: Pipeline) -> float | None:
+    """Growth of the peak memory (MiB) per km travelled since the reference frame (100):
+    what a longer drive adds; None before 100 m beyond it."""
+    st = pipeline.state
+    if st.memory_reference is None:
+        return None
+    peak0, path0 = st.memory_reference
+    km = (st.path_length - path0) / 1000.0
+    return round((peak_memory_mb() - peak0) / km, 1) if km >= 0.1 else None
+
+
 def keyframe_cloud_mb(pipeline: Pipeline) -> float:
     """MiB held by the stored keyframe clouds."""
     return sum(kf.cloud.nbytes for kf in pipeline.state.keyframes) / 2**20
@@ -131,6 +142,7 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "frames_per_second": round(st.frames / st.wall_seconds, 2) if st.wall_seconds else None,
         "frontend_frames_per_second": round(st.frames / fe, 2) if fe else None,
         "peak_memory_mb": round(peak_memory_mb(), 1),
+        "memory_mb_per_km": memory_per_km(pipeline),
         "frontend_means": {k: round(v, 4) for k, v in sorted(st.diagnostic_means().items())},
         "stopped_by": st.stopped_by,
         "sensor": st.sensor,

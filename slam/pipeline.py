@@ -25,6 +25,8 @@ from slam.types import Keyframe, Scan, SkippedMessage
 
 log = logging.getLogger(__name__)
 
+MEMORY_REFERENCE_FRAME = 100  # frames after which the map, models and kernels are warm
+
 
 @dataclass
 class FactorSource:
@@ -75,6 +77,9 @@ class RunState:
     backend_seconds: array = field(default_factory=lambda: array("d"))
     stage_max_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     path_length: float = 0.0  # odometric distance travelled (m), summed frame to frame
+    # (peak memory MiB, path length m) after MEMORY_REFERENCE_FRAME frames: the growth of the
+    # peak from there per km travelled is metrics.json's memory_mb_per_km
+    memory_reference: tuple[float, float] | None = None
     skipped_frames: int = 0  # frames the front end could not register (prediction kept)
     skipped_messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     degenerate_frames: int = 0
@@ -255,6 +260,10 @@ class Pipeline:
         st.frame_kf.append(kf.id)
         st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, pose))
         st.frame_seconds.append(time.perf_counter() - t0)
+        if st.frames == MEMORY_REFERENCE_FRAME:
+            from slam.outputs import peak_memory_mb
+
+            st.memory_reference = (peak_memory_mb(), st.path_length)
 
     def _timed(self, stage: str, seconds: float) -> None:
         st = self.state

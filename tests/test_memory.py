@@ -229,3 +229,15 @@ def test_metrics_carry_each_factor_plugins_stats(tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["factor_stats"] == {"mine": {"calls": 7, "detect_ms_mean": 1.2346}}
     assert m["seconds"]["factor:mine"] >= 0 and "factor:mine" in m["stage_ms_max"]
+
+
+def test_memory_per_km_is_the_peak_growth_after_the_first_100_frames(tmp_path):
+    pipe = Pipeline(SlamConfig(), frontend=CloudFrontend(n_points=10, step=2.0))
+    pipe.run(_scans(160))  # 2 m per frame: 120 m after the reference frame
+    peak0, path0 = pipe.state.memory_reference
+    assert path0 == pytest.approx(198.0) and peak0 > 0
+    write_outputs(pipe, tmp_path, resolved_config={})
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["memory_mb_per_km"] >= 0.0 and m["path_length_m"] == pytest.approx(318.0)
+    short, _ = _run(20)
+    assert short.state.memory_reference is None
