@@ -1,15 +1,18 @@
-"""LOAM edge/plane features per scan ring (A-LOAM / F-LOAM selection), fully vectorised.
+"""LOAM edge/plane features per scan ring (A-LOAM / F-LOAM selection).
 
 All rings are processed in one pass over the ring-sorted concatenated cloud with ring
 boundaries masked. Edge selection = A-LOAM's greedy "pick the sharpest, suppress 5
-neighbours each side unless a gap lies between", computed as an exact parallel non-maximum
-suppression (rounds of numpy operations, no per-point Python loop), then a per-sector
-top-N. Planes are every other low-curvature point (A-LOAM's "less flat" set); the scan-to-map
-front ends downsample them. Every count is per ring and sector, so the feature count scales
-with the beam count (16-128 beams); rings come from the driver or from ``slam.sensor``.
-Optional curvature correction (improved FLOAM, paper 000, section 2.3) rejects pseudo-edges
-and pseudo-planes with the covariance curvature kappa = tr(Sigma)/||Sigma||_F.
-"""
+neighbours each side unless a gap lies between", then a per-sector top-N. Planes are every
+other low-curvature point (A-LOAM's "less flat" set); the scan-to-map front ends downsample
+them. Every count is per ring and sector, so the feature count scales with the beam count
+(16-128 beams); rings come from the driver or from ``slam.sensor``. Optional curvature
+correction (improved FLOAM, paper 000, section 2.3) rejects pseudo-edges and pseudo-planes
+with the covariance curvature kappa = tr(Sigma)/||Sigma||_F.
+
+Two back ends with identical results: ``_extract_features_numpy``, the readable vectorised
+reference (greedy NMS as an exact parallel suppression in rounds of numpy operations), and
+the default compiled kernels of ``slam.features.loam_kernels`` (sequential loops, ~10x
+faster: about 1 ms per 28.8k-point 16-beam scan, 6 ms per 120k-point 64-beam scan)."""
 
 from __future__ import annotations
 
