@@ -1,4 +1,5 @@
-"""Loop closure: Scan Context descriptor, ring-key candidate search, GICP verification, plugin."""
+"""Loop closure: Scan Context and Scan Context++ descriptors, KD-tree candidate search,
+GICP verification, the factor plugin."""
 
 from slam.loop.scan_context import (
     ScanContextParams,
@@ -10,11 +11,21 @@ from slam.loop.scan_context import (
     shift_to_yaw,
     yaw_to_shift,
 )
+from slam.loop.scan_context_pp import (
+    CartesianIndex,
+    ScanContextPPParams,
+    cartesian_context,
+    polar_context,
+)
 from slam.loop.search import Candidate, ScanContextDatabase, SearchParams
 from slam.loop.verify import VerifyParams, VerifyResult, scaled_information, verify
 
 __all__ = [
     "Candidate",
+    "CartesianIndex",
+    "ScanContextPPParams",
+    "cartesian_context",
+    "polar_context",
     "ScanContextDatabase",
     "ScanContextParams",
     "SearchParams",

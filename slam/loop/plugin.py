@@ -21,6 +21,12 @@ import numpy as np
 from slam.errors import InputError
 from slam.factors import FactorConfig, GraphView, information_noise, key, pose3, robust_noise
 from slam.loop.scan_context import ScanContextParams, scan_context
+from slam.loop.scan_context_pp import (
+    CartesianIndex,
+    ScanContextPPParams,
+    cartesian_context,
+    polar_context,
+)
 from slam.loop.search import Candidate, ScanContextDatabase, SearchParams
 from slam.loop.verify import (
     VerifyParams,
@@ -33,6 +39,9 @@ from slam.loop.verify import (
 from slam.types import Keyframe, LoopConstraint
 
 log = logging.getLogger(__name__)
+
+DESCRIPTORS = ("scan_context", "scan_context_pp")
+PROPOSERS = ("descriptor", "radius")
 
 CSV_COLUMNS = (
     "source", "target", "stamp_source", "stamp_target", "score", "fitness", "yaw_deg",
@@ -82,6 +91,14 @@ class LoopClosurePlugin:
         Search: exclude_recent (keyframes) / exclude_seconds (s) never matched, top_k ring-key
         neighbours, sc_threshold on the Scan Context distance, rebuild_every (KD-tree),
         shift_window (0 = all column shifts), proximity_radius (m, 0 = off).
+        descriptor: scan_context (Kim & Kim 2018, all points) or scan_context_pp (SC++, Kim
+        et al. 2022: polar context of the non-ground points plus the Cartesian context with
+        lateral-shift and half-turn augmentation, see slam.loop.scan_context_pp; cc_threshold
+        on its CC distance, ground_clearance (m), cc_rows / cc_cols over +-cc_lateral /
+        +-cc_longitudinal (m), lateral_shifts / longitudinal_shifts (bins)).
+        proposer: descriptor (the descriptor's KD-tree search proposes) or radius (LeGO-LOAM:
+        the nearest keyframe within ``radius`` m of the current estimate that is at least
+        radius_min_seconds older, verified from the estimate).
         Verification (see slam.loop.verify.VerifyParams): verify_voxel (m, also the stored
         clouds' voxel), neighbours (+-n keyframes merged into each local cloud),
         max_correspondence / coarse_voxel / coarse_max_correspondence (m, GICP stages),
@@ -122,6 +139,18 @@ class LoopClosurePlugin:
         rebuild_every: int = 10
         shift_window: int = 0
         proximity_radius: float = 0.0
+        descriptor: str = "scan_context"
+        proposer: str = "descriptor"
+        radius: float = 7.0
+        radius_min_seconds: float = 30.0
+        cc_threshold: float = 0.25
+        ground_clearance: float = 0.3
+        cc_rows: int = 80
+        cc_cols: int = 20
+        cc_lateral: float = 20.0
+        cc_longitudinal: float = 40.0
+        lateral_shifts: int = 10
+        longitudinal_shifts: int = 5
         verify_voxel: float = 0.25
         neighbours: int = 0
         max_correspondence: float = 1.0
@@ -163,6 +192,16 @@ class LoopClosurePlugin:
                     raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
             if not 0.0 <= self.min_overlap <= 1.0:
                 raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
+            if self.descriptor not in DESCRIPTORS:
+                raise ValueError(
+                    f"unknown descriptor '{self.descriptor}'; valid: {', '.join(DESCRIPTORS)}"
+                )
+            if self.proposer not in PROPOSERS:
+                raise ValueError(
+                    f"unknown proposer '{self.proposer}'; valid: {', '.join(PROPOSERS)}"
+                )
+            if self.proposer == "radius" and not self.radius > 0:
+                raise ValueError(f"radius must be > 0 m for proposer radius, got {self.radius}")
 
     def __init__(self, config: Config | None = None):
         self.config = cfg = config or self.Config()
@@ -177,7 +216,11 @@ class LoopClosurePlugin:
             cfg.sectors,
             SearchParams(
                 exclude_recent=cfg.exclude_recent,
-                exclude_seconds=cfg.exclude_seconds,
+                exclude_seconds=(
+                    max(cfg.exclude_seconds, cfg.radius_min_seconds)
+                    if cfg.proposer == "radius"
+                    else cfg.exclude_seconds
+                ),
                 top_k=cfg.top_k,
                 threshold=cfg.sc_threshold,
                 rebuild_every=cfg.rebuild_every,
@@ -205,6 +248,7 @@ class LoopClosurePlugin:
             min_sigma_rot_deg=cfg.min_sigma_rot_deg,
             max_sigma_ratio=cfg.max_sigma_ratio,
         )
+        self.cc_index: CartesianIndex | None = None  # SC++ only, once the geometry is fixed
         self.events: list[LoopConstraint] = []
         self._event_meta: list[tuple[float, float, float]] = []  # stamps and yaw per event
         self._row_of: dict[int, int] = {}
@@ -229,11 +273,10 @@ class LoopClosurePlugin:
             if len(self._pending) >= cfg.auto_keyframes:
                 self._fix_descriptor_params()
         else:
-            desc = scan_context(kf.cloud, self.sc_params)
-            self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
+            desc, cc = self._describe(kf)
         step = float(np.linalg.norm(np.asarray(kf.relative)[:3, 3])) if kf.id > 0 else 0.0
         self._travel[kf.id] = self._travel.get(kf.id - 1, 0.0) + step
-        candidates = [] if pending else self._candidates(kf, desc, graph)
+        candidates = [] if pending else self._candidates(kf, desc, cc, graph)
         self.detect_ms.append(1e3 * (time.perf_counter() - t0))
         if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
             return []
@@ -252,8 +295,32 @@ class LoopClosurePlugin:
             self.sc_params.max_radius, self.sc_params.lidar_height, len(self._pending),
         )  # fmt: skip
         for k in self._pending:
-            self._row_of[k.id] = self.db.add(k.id, k.stamp, scan_context(k.cloud, self.sc_params))
+            self._describe(k)
         self._pending = []
+
+    def _pp_params(self) -> ScanContextPPParams:
+        cfg, sc = self.config, self.sc_params
+        return ScanContextPPParams(
+            sc.rings, sc.sectors, sc.max_radius, sc.lidar_height, cfg.ground_clearance,
+            cfg.cc_rows, cfg.cc_cols, cfg.cc_lateral, cfg.cc_longitudinal,
+            cfg.lateral_shifts, cfg.longitudinal_shifts,
+        )  # fmt: skip
+
+    def _describe(self, kf: Keyframe) -> tuple[np.ndarray, np.ndarray | None]:
+        """Descriptor(s) of a keyframe, stored: Scan Context, or SC++'s polar context (non-ground
+        points) and Cartesian context. Returns (polar descriptor, CC or None)."""
+        if self.config.descriptor == "scan_context":
+            desc, cc = scan_context(kf.cloud, self.sc_params), None
+        else:
+            if self.cc_index is None:
+                self.cc_index = CartesianIndex(
+                    self._pp_params(), self.config.top_k, self.config.rebuild_every
+                )
+            p = self.cc_index.p
+            desc, cc = polar_context(kf.cloud, p), cartesian_context(kf.cloud, p)
+            self.cc_index.add(cc)
+        self._row_of[kf.id] = self.db.add(kf.id, kf.stamp, desc)
+        return desc, cc
 
     @staticmethod
     def _cloud(graph: GraphView, kf_id: int) -> np.ndarray:
@@ -267,15 +334,26 @@ class LoopClosurePlugin:
             )
         return kfs[kf_id].cloud
 
-    def _candidates(self, kf: Keyframe, desc: np.ndarray, graph: GraphView) -> list[Candidate]:
-        """Scan Context candidates below the threshold, then proximity candidates (if on)."""
+    def _candidates(
+        self, kf: Keyframe, desc: np.ndarray, cc: np.ndarray | None, graph: GraphView
+    ) -> list[Candidate]:
+        """Descriptor candidates below the threshold (SC++: polar and Cartesian, best first),
+        then proximity candidates (if on); with proposer radius only the nearest keyframe
+        within ``radius`` m."""
         cfg = self.config
-        out = [c for c in self.db.query(desc, kf.stamp) if c.distance < cfg.sc_threshold]
-        if cfg.proximity_radius > 0.0:
+        out: list[Candidate] = []
+        if cfg.proposer == "descriptor":
+            out = [c for c in self.db.query(desc, kf.stamp) if c.distance < cfg.sc_threshold]
+            if cc is not None:
+                out = self._merge_cartesian(out, cc, kf.stamp)
+        radius = cfg.radius if cfg.proposer == "radius" else cfg.proximity_radius
+        if radius > 0.0:
             self._refresh_positions(kf, graph)
             T_w_cur = self._estimate(graph, kf)
             seen = {c.row for c in out}
-            rows = [r for r in self.db.near(T_w_cur[:3, 3], cfg.proximity_radius, kf.stamp)]
+            rows = [r for r in self.db.near(T_w_cur[:3, 3], radius, kf.stamp)]
+            if cfg.proposer == "radius":
+                rows = rows[:1]  # LeGO-LOAM: the nearest one
             rows = [r for r in rows if r not in seen]
             for c in self.db.score(desc, np.asarray(rows, dtype=np.intp)):
                 T_rel = np.linalg.inv(self._estimate_id(graph, c.kf_id)) @ T_w_cur
@@ -283,6 +361,24 @@ class LoopClosurePlugin:
                 c.shift = -1
                 out.append(c)
         return out
+
+    def _merge_cartesian(
+        self, polar: list[Candidate], cc: np.ndarray, stamp: float
+    ) -> list[Candidate]:
+        """SC++: polar candidates and the Cartesian context's augmented matches below
+        cc_threshold, one per keyframe (the lower distance wins), best first. A CC match
+        carries its initial pose (half a turn or none, the lateral/longitudinal shift)."""
+        by_row = {c.row: c for c in polar}
+        for m in self.cc_index.query(cc, self.db.eligible(stamp)):
+            if m.distance >= self.config.cc_threshold:
+                break
+            if m.row in by_row and by_row[m.row].distance <= m.distance:
+                continue
+            by_row[m.row] = Candidate(
+                row=m.row, kf_id=self.db.kf_id(m.row), distance=m.distance, shift=0,
+                yaw=yaw_of(m.T_candidate_query), init=m.T_candidate_query,
+            )  # fmt: skip
+        return sorted(by_row.values(), key=lambda c: c.distance)
 
     def _refresh_positions(self, kf: Keyframe, graph: GraphView) -> None:
         """Keep proximity positions current: all rows every rebuild_every keyframes."""
@@ -332,6 +428,8 @@ class LoopClosurePlugin:
                 init = np.linalg.inv(self._estimate_id(graph, cand.kf_id)) @ self._estimate(
                     graph, kf
                 )
+            elif cand.init is not None:
+                init = np.asarray(cand.init, dtype=np.float64)
             else:
                 init = yaw_matrix(cand.yaw)
             res = None

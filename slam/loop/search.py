@@ -49,7 +49,8 @@ class SearchParams:
 @dataclass
 class Candidate:
     """A scored database entry: row in the database, keyframe id, Scan Context distance,
-    column shift and the yaw (radians) of T_candidate_query it implies."""
+    column shift and the yaw (radians) of T_candidate_query it implies; init: a full initial
+    pose (e.g. from a Scan Context++ Cartesian match), None = the yaw alone."""
 
     row: int
     kf_id: int
@@ -57,6 +58,7 @@ class Candidate:
     shift: int
     yaw: float
     key_distance: float = float("nan")
+    init: np.ndarray | None = None  # T_candidate_query to start verification from, if known
 
 
 class ScanContextDatabase:
