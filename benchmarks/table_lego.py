@@ -95,14 +95,21 @@ def ablation_overrides(name: str = FULL) -> list[tuple[str, list[str]]]:
     return out
 
 
-def has_factor(name: str) -> bool:
+GROUND_PLUGIN = "slam.ground_factor:GroundFactorPlugin"
+
+
+def ground_factor_overrides() -> list[str] | None:
+    """Overrides adding the ground factor plugin to a recipe: by its entry-point name
+    ``ground`` when registered, else by import path; None when it does not exist."""
     from slam import plugins
 
-    try:
-        plugins.load("slam.factors", name)
-    except Exception:  # noqa: BLE001 - any failure means: not installed
-        return False
-    return True
+    for spec, over in (("ground", []), (GROUND_PLUGIN, [f"factors.ground.plugin={GROUND_PLUGIN}"])):
+        try:
+            plugins.load("slam.factors", spec)
+        except Exception:  # noqa: BLE001, S112 - any failure means: not installed
+            continue
+        return [*over, "factors.ground.enabled=true"]
+    return None
 
 
 def z_errors(res) -> dict:
@@ -181,10 +188,11 @@ def jobs_for(scene: str, seq, configs, frames, out: Path, ablation: bool) -> lis
     if ablation and FULL in configs:
         for label, over in ablation_overrides(FULL):
             add(f"{FULL} {label}", FULL, over, "ablation")
-    if has_factor("ground"):
+    ground = ground_factor_overrides()
+    if ground is not None:
         for name in configs:
-            if name not in (FULL, BASELINE):
-                add(f"{name} + ground factor", name, ["factors.ground.enabled=true"], "ground")
+            if name not in (FULL,) and not name.endswith("_loop"):
+                add(f"{name} + ground factor", name, ground, "ground")
     return jobs
 
 
