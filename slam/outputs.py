@@ -42,6 +42,11 @@ def build_map(pipeline: Pipeline, voxel: float | None = None) -> np.ndarray:
     ``output.map_voxel``; <= 0 keeps every point) of the keyframe clouds placed by their
     optimised poses, streamed keyframe by keyframe into a :class:`VoxelCentroidMap` (memory
     bounded by the occupied voxels, not by the sum of the clouds)."""
+    return map_accumulator(pipeline, voxel).centroids()
+
+
+def map_accumulator(pipeline: Pipeline, voxel: float | None = None) -> Any:
+    """The :class:`slam.io.maps.VoxelCentroidMap` of the run (see :func:`build_map`)."""
     from slam.io.maps import VoxelCentroidMap
 
     st = pipeline.state
@@ -51,7 +56,7 @@ def build_map(pipeline: Pipeline, voxel: float | None = None) -> np.ndarray:
             acc.add_transformed(kf.cloud, st.estimates.get(kf.id, kf.pose_odom))
     if acc.dropped:
         log.warning("map: %d points beyond the voxel key range dropped", acc.dropped)
-    return acc.centroids()
+    return acc
 
 
 def _window_mean_ms(seconds: Any, first: bool, n: int = 100) -> float | None:
@@ -172,11 +177,9 @@ def write_outputs(
     st = pipeline.state
     if pipeline.config.output.write_map and st.keyframes:
         try:
-            from slam.io.maps import write_points
-
             t0 = time.perf_counter()
             name = MAP_PCD if pipeline.config.output.map_format == "pcd" else "map.ply"
-            n_map = write_points(out / name, build_map(pipeline))
+            n_map = map_accumulator(pipeline).write(out / name)
             st.stage_seconds["map"] += time.perf_counter() - t0
             written["map"] = out / name
             extra_metrics = {**(extra_metrics or {}), "map_points": n_map}

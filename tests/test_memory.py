@@ -241,3 +241,17 @@ def test_memory_per_km_is_the_peak_growth_after_the_first_100_frames(tmp_path):
     assert m["memory_mb_per_km"] >= 0.0 and m["path_length_m"] == pytest.approx(318.0)
     short, _ = _run(20)
     assert short.state.memory_reference is None
+
+
+def test_accumulator_writes_its_centroids_block_by_block(tmp_path):
+    rng = np.random.default_rng(2)
+    acc = VoxelCentroidMap(0.5, chunk_points=3000)
+    for _ in range(5):
+        acc.add(rng.uniform(-20, 20, (2000, 3)))
+    ref = acc.centroids()
+    for name in ("m.pcd", "m.ply"):
+        assert acc.write(tmp_path / name, block=777) == len(ref)
+        back = np.asarray(o3d.io.read_point_cloud(str(tmp_path / name)).points)
+        np.testing.assert_allclose(back, ref, atol=1e-5)
+    assert VoxelCentroidMap(0.5).write(tmp_path / "empty.pcd") == 0
+    assert "POINTS 0" in (tmp_path / "empty.pcd").read_text()

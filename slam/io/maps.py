@@ -135,6 +135,20 @@ class VoxelCentroidMap:
             self._sums = np.insert(self._sums, at, sums[new], axis=0)
             self._counts = np.insert(self._counts, at, counts[new])
 
+    def write(self, path: str | Path, block: int = 1 << 20) -> int:
+        """Write the centroids to ``path`` (.pcd/.ply, binary float32) ``block`` voxels at a
+        time (no full float64 copy of the map); returns the number of points written."""
+        path = _map_path(path)
+        if self.voxel <= 0:
+            return write_points(path, self.centroids())
+        self._merge()
+        n = len(self._keys)
+        blocks = (
+            self._sums[i : i + block] / self._counts[i : i + block, None]
+            for i in range(0, n, block)
+        )
+        return _write_blocks(path, n, blocks)
+
     def centroids(self) -> np.ndarray:
         """(M, 3) centroid of each occupied voxel, by voxel key (voxel <= 0: every point)."""
         if self.voxel <= 0:
@@ -145,39 +159,53 @@ class VoxelCentroidMap:
         return self._sums / self._counts[:, None]
 
 
-def write_points(path: str | Path, points: np.ndarray) -> int:
-    """Write ``points`` (N, 3) m as a binary float32 .pcd or .ply; returns N.
-
-    Written with numpy (header + one block), not open3d: open3d needs its own float64
-    copy of a map that may hold tens of millions of points."""
+def _map_path(path: str | Path) -> Path:
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in MAP_SUFFIXES:
+    if path.suffix.lower() not in MAP_SUFFIXES:
         raise InputError(f"map file {path}: use a .pcd or .ply suffix")
-    pts = np.ascontiguousarray(np.asarray(points)[:, :3], dtype="<f4")
     path.parent.mkdir(parents=True, exist_ok=True)
-    n = len(pts)
-    if n == 0:
-        path.write_text(_EMPTY_PCD if suffix == ".pcd" else _EMPTY_PLY)
-        return 0
+    return path
+
+
+def _header(suffix: str, n: int) -> bytes:
+    """Header of a binary float32 x y z .pcd or .ply file of ``n`` points."""
     if suffix == ".pcd":
-        header = (
+        text = (
             "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
             f"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
             f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
         )
     else:
-        header = (
+        text = (
             f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty float x\n"
             "property float y\nproperty float z\nend_header\n"
         )
+    return text.encode("ascii")
+
+
+def _write_blocks(path: Path, n: int, blocks) -> int:
+    """Write ``n`` points given as an iterable of (k, 3) arrays (float32 on disk)."""
+    if n == 0:
+        path.write_text(_EMPTY_PCD if path.suffix.lower() == ".pcd" else _EMPTY_PLY)
+        return 0
     try:
         with path.open("wb") as fh:
-            fh.write(header.encode("ascii"))
-            pts.tofile(fh)
+            fh.write(_header(path.suffix.lower(), n))
+            for block in blocks:
+                np.ascontiguousarray(block, dtype="<f4").tofile(fh)
     except OSError as exc:
         raise InputError(f"could not write map {path}: {exc} (is the folder writable?)") from exc
     return n
+
+
+def write_points(path: str | Path, points: np.ndarray) -> int:
+    """Write ``points`` (N, 3) m as a binary float32 .pcd or .ply; returns N.
+
+    Written with numpy (header + one block), not open3d: open3d needs its own float64
+    copy of a map that may hold tens of millions of points."""
+    path = _map_path(path)
+    pts = np.asarray(points)[:, :3]
+    return _write_blocks(path, len(pts), [pts])
 
 
 def write_map(path: str | Path, points: np.ndarray, voxel: float) -> int:
