@@ -232,3 +232,20 @@ def test_database_grows_past_its_initial_capacity():
     assert len(db) == 200
     np.testing.assert_allclose(db.descriptor(150), descs[150].astype(np.float32), rtol=1e-6)
     np.testing.assert_array_equal(db.near([100.0, 0.5, 0.0], 2.0, 300.0), [100, 99, 101])
+
+
+def test_tree_rebuilds_grow_geometrically_and_stay_exact():
+    """At 1000 keyframes the key tree is rebuilt a few dozen times, not every 10 keyframes,
+    and the brute-force tail keeps the top-k exact."""
+    rng = np.random.default_rng(3)
+    n = 1000
+    descs = _random_descs(n, rng)
+    db = ScanContextDatabase(20, 60, SearchParams(exclude_recent=30, top_k=5, rebuild_every=10))
+    for i in range(n):
+        db.add(i, float(i), descs[i])
+        hits = db.query(descs[i], float(i))
+        if i % 97 == 0 and i > 30:
+            keys = ring_key(descs[: i + 1 - 30])
+            brute = np.argsort(np.linalg.norm(keys - ring_key(descs[i]), axis=1))[:5]
+            assert sorted(h.row for h in hits) == sorted(brute.tolist())
+    assert 20 <= db.tree_builds <= 45, db.tree_builds  # every 10 would be 97

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.loop.scan_context import ScanContextParams, scan_context
+from slam.loop.search import tree_is_stale
 from slam.loop.verify import yaw_matrix
 
 
@@ -172,7 +173,8 @@ class CCMatch:
 
 class CartesianIndex:
     """CCs and their lateral keys in arrival order, with a KD-tree over the keys rebuilt
-    every ``rebuild_every`` rows (rows added since are searched by brute force)."""
+    like the Scan Context database's (:func:`slam.loop.search.tree_is_stale`; rows added
+    since are searched by brute force)."""
 
     def __init__(self, p: ScanContextPPParams, top_k: int = 10, rebuild_every: int = 10):
         self.p, self.top_k, self.rebuild_every = p, top_k, rebuild_every
@@ -198,7 +200,7 @@ class CartesianIndex:
     def _nearest(self, keys: np.ndarray, n_eligible: int) -> tuple[np.ndarray, np.ndarray]:
         """(Q, <= top_k) rows of the nearest keys per query key among the first n_eligible,
         and their key distances."""
-        if n_eligible < self._tree_size or n_eligible - self._tree_size >= self.rebuild_every:
+        if tree_is_stale(n_eligible, self._tree_size, self.rebuild_every):
             self._tree = cKDTree(self._key[:n_eligible])
             self._tree_size = n_eligible
             self.tree_builds += 1

@@ -5,8 +5,10 @@ older than the exclusion window (the last ``exclude_recent`` keyframes and the l
 ``exclude_seconds`` seconds). The KD-tree over their ring keys is rebuilt lazily,
 every ``rebuild_every`` newly eligible keyframes; the few eligible keyframes not yet in
 the tree are compared by brute force, so results are exact without a rebuild per
-keyframe. The ``top_k`` nearest ring keys are re-ranked by the column-shift distance
-(optionally only around the sector-key pre-alignment shift).
+keyframe. Once the tree is large the rebuild waits for REBUILD_GROWTH x its size new rows
+(the brute-force tail stays a small share), so at 1000 keyframes it is rebuilt every ~125.
+The ``top_k`` nearest ring keys are re-ranked by the column-shift distance (optionally
+only around the sector-key pre-alignment shift).
 """
 
 from __future__ import annotations
@@ -23,6 +25,15 @@ from slam.loop.scan_context import (
     sector_key_shift,
     shift_to_yaw,
 )
+
+REBUILD_GROWTH = 0.125  # rebuild the KD-tree after max(rebuild_every, this x its size) rows
+
+
+def tree_is_stale(n_eligible: int, tree_size: int, rebuild_every: int) -> bool:
+    """Rebuild the key tree now? When rows left it (the window moved back) or enough
+    rows were added since: rebuild_every, or REBUILD_GROWTH of the tree once it is large."""
+    grown = n_eligible - tree_size
+    return n_eligible < tree_size or grown >= max(rebuild_every, int(REBUILD_GROWTH * tree_size))
 
 
 @dataclass(frozen=True)
@@ -136,7 +147,7 @@ class ScanContextDatabase:
     def _nearest_keys(self, key: np.ndarray, n_eligible: int) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the top_k nearest ring keys among the first ``n_eligible`` rows."""
         p = self.params
-        if n_eligible < self._tree_size or n_eligible - self._tree_size >= p.rebuild_every:
+        if tree_is_stale(n_eligible, self._tree_size, p.rebuild_every):
             self._tree = cKDTree(self._rkey[:n_eligible])
             self._tree_size = n_eligible
             self.tree_builds += 1
@@ -145,7 +156,7 @@ class ScanContextDatabase:
             d, i = self._tree.query(key, k=min(p.top_k, self._tree_size))
             rows.append(np.atleast_1d(i))
             dists.append(np.atleast_1d(d))
-        if n_eligible > self._tree_size:  # not yet in the tree: brute force (< rebuild_every rows)
+        if n_eligible > self._tree_size:  # not yet in the tree: brute force (a small tail)
             tail = np.arange(self._tree_size, n_eligible)
             rows.append(tail)
             dists.append(np.linalg.norm(self._rkey[tail] - key, axis=1))
