@@ -59,8 +59,8 @@ class VoxelCentroidMap:
     """Streaming voxel-centroid accumulator (a sorted hash of voxel sums and counts).
 
     ``add`` buffers one cloud (N, 3) m, already in the map frame; when the buffer holds
-    ``chunk_points`` points (or a quarter of the table's voxels, whichever is more, so that
-    the O(M) merges stay few on large maps) it is reduced per voxel and merged into the
+    ``chunk_points`` points (up to 4 x that on large maps: a quarter of the table's voxels,
+    so that the O(M) merges stay few) it is reduced per voxel and merged into the
     table (one ``searchsorted`` pass, no per-point Python). ``centroids()`` gives (M, 3)
     float64.
     voxel <= 0 keeps every point (float32), as ``write_map`` does. Points farther than
@@ -101,7 +101,9 @@ class VoxelCentroidMap:
         self._buffer.append(pts if len(keys) == len(pts) else pts[inside])
         self._buffer_keys.append(keys)
         self._buffered += len(keys)
-        if self._buffered >= max(self.chunk_points, len(self._keys) // 4):
+        if self._buffered >= min(
+            max(self.chunk_points, len(self._keys) // 4), 4 * self.chunk_points
+        ):
             self._merge()
 
     def add_transformed(self, points: np.ndarray, T: np.ndarray) -> None:
