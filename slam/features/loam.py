@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.errors import ConfigError, InputError
+from slam.features import loam_kernels as kern
 from slam.features.curvature import KAPPA_VOLUME, covariance_curvature
 from slam.sensor import estimate_beams
 
@@ -376,8 +377,6 @@ def _extract_features_numba(
 ) -> Features | None:
     """``_extract_features_numpy`` with the compiled kernels of ``loam_kernels``; None for the
     inputs they do not take (non-integer or huge ring ids, NaN sort keys): use the reference."""
-    from slam.features import loam_kernels as kern  # numba is imported on first use only
-
     n_all = len(xyz)
     if ring.dtype.kind not in "iub":
         return None
