@@ -1,11 +1,16 @@
 """Speed of preprocessing and features on a simulated 28.8k-point 16-beam scan (ms per scan).
 
 Run: .venv/bin/python benchmarks/bench_preprocess.py [--repeat 7] [--before REV] [--knn]
+     .venv/bin/python benchmarks/bench_preprocess.py --scans [--repeat 7]
 Every row is also given relative to open3d remove_statistical_outlier (C++), measured in the
 same run, so numbers from runs under different machine load can be compared. --before REV
 loads the preprocessing modules of git revision REV (``git show``, read-only) and times them
 side by side with the working tree ("before"/"after" columns, same run, results compared).
 --knn also times the k-NN back ends (small_gicp 1/2 threads, scipy cKDTree, open3d).
+--scans times SOR and its k-NN old (KD-tree, no ring) against new (range image with the
+scan's rings, slam.preprocess.range_image) on a simulated 16-beam corridor and park scan, a
+simulated 64-beam urban scan and a real KITTI-raw HDL-64E scan (rings inferred as the pipeline
+does), with the certificate rate and whether the keep-masks are identical.
 """
 
 from __future__ import annotations
@@ -154,12 +159,85 @@ def knn_rows(xyz, repeat) -> dict:
     return {name: ms for name, (ms, _) in timed_pair(rows, repeat).items()}
 
 
+def real_scans() -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, xyz, ring) of one scan each: corridor/park (VLP-16), urban (HDL-64, no ring
+    field), KITTI-raw (real HDL-64E, no ring); missing rings from the first scans' beams."""
+    import itertools
+    import tarfile
+    import tempfile
+    from pathlib import Path
+
+    from slam.io.folders import cloud_files, read_cloud
+    from slam.io.source import open_source
+    from slam.sensor import estimate_beams
+    from slam.sim.cache import ensure_sequence
+
+    def with_rings(name, scans):
+        s = scans[-1]
+        ring = s.ring
+        if ring is None:
+            ring = estimate_beams([t.xyz for t in scans]).ring_of(s.xyz)
+        return name, s.xyz, ring
+
+    out = []
+    for name, kw in (
+        ("corridor 16-beam", dict(scene="corridor", frames=100)),
+        ("park 16-beam", dict(scene="park", frames=150)),
+        ("urban 64-beam", dict(scene="urban", frames=30, sensor="hdl64")),
+    ):
+        seq = ensure_sequence(kw.pop("scene"), **kw)
+        out.append(with_rings(name, list(itertools.islice(iter(open_source(seq.bag)), 6))))
+    data = Path(ROOT).parent / "shared" / "data" / "kitti_raw_drive" / "data_1.tar.xz"
+    with tempfile.TemporaryDirectory() as tmp:
+        with tarfile.open(data, "r:xz") as tar:
+            tar.extractall(tmp, filter="data")
+        files = cloud_files(Path(tmp) / "data_1")[:3]
+        scans = [read_cloud(f, index=i, stamp=0.1 * i) for i, f in enumerate(files)]
+    out.append(with_rings("KITTI-raw HDL-64E", scans))
+    return out
+
+
+def scan_rows(repeat: int) -> None:
+    """Old (KD-tree) vs new (range image) k-NN and weighted SOR per scan, same run."""
+    from slam.preprocess.knn import self_knn
+    from slam.preprocess.range_image import range_image_knn
+
+    cfg = sor_mod.SorConfig()
+    print(f"load average {os.getloadavg()[0]:.2f}; median of {repeat}, ms (wall / CPU)")
+    print(
+        f"  {'scan':20s} {'points':>7s} {'k-NN old':>13s} {'k-NN new':>13s} {'x':>5s}"
+        f" {'SOR old':>13s} {'SOR new':>13s} {'x':>5s} {'cert':>6s} {'visits':>6s} same"
+    )
+    for name, xyz, ring in real_scans():
+        res = timed_pair(
+            {
+                "knn_old": lambda x=xyz: self_knn(x, cfg.k),
+                "knn_new": lambda x=xyz, r=ring: self_knn(x, cfg.k, ring=r),
+                "sor_old": lambda x=xyz: sor_mod.apply_sor(x, cfg),
+                "sor_new": lambda x=xyz, r=ring: sor_mod.apply_sor(x, cfg, ring=r),
+            },
+            repeat,
+        )
+        ri = range_image_knn(xyz, ring, cfg.k)
+        same = np.array_equal(sor_mod.apply_sor(xyz, cfg), sor_mod.apply_sor(xyz, cfg, ring=ring))
+        (ko, kco), (kn, kcn), (so, sco), (sn, scn) = res.values()
+        print(
+            f"  {name:20s} {len(xyz):7d} {ko:6.1f}/{kco:6.1f} {kn:6.1f}/{kcn:6.1f} {ko / kn:5.1f}"
+            f" {so:6.1f}/{sco:6.1f} {sn:6.1f}/{scn:6.1f} {so / sn:5.1f}"
+            f" {ri.certified_rate:6.3f} {ri.visits.mean():6.1f} {same}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--before", metavar="REV", help="git revision to compare against")
     ap.add_argument("--knn", action="store_true", help="also time the k-NN back ends")
+    ap.add_argument("--scans", action="store_true", help="SOR old vs new on 16/64-beam scans")
     args = ap.parse_args()
+    if args.scans:
+        scan_rows(args.repeat)
+        return
     xyz, label, ring, time_s = scan()
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     T = np.eye(4)

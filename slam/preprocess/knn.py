@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import small_gicp
+from scipy.spatial import cKDTree
 
 KNN_THREADS = 2  # build + query threads (28 vs 41 ms for a 28.8k-point scan at k=10, quiet box)
 
@@ -24,6 +25,14 @@ def knn(
     tree = small_gicp.KdTree(points, num_threads=threads)
     idx, sq = tree.batch_knn_search(queries, k, num_threads=threads)
     return idx.astype(np.int64, copy=False), np.sqrt(sq)
+
+
+def fallback_tree(points: np.ndarray) -> cKDTree:
+    """The KD-tree for the few queries the range image leaves (~0.3-1 % of a scan): scipy's
+    unbalanced build is the cheapest to build (28.8k points: 2.6 ms CPU vs 5.1 for small_gicp
+    and 1.9 for pykdtree, whose OpenMP query of a hundred points then cost 4 ms against
+    0.5; benchmarks/bench_preprocess.py --knn)."""
+    return cKDTree(points, leafsize=16, balanced_tree=False, compact_nodes=False)
 
 
 def self_knn(
@@ -50,7 +59,7 @@ def self_knn(
     dist = res.dist
     bad = np.flatnonzero(~res.certified)
     if len(bad):
-        fb_idx, fb_dist = knn(xyz, xyz[bad], k + 1, threads)
+        fb_dist, fb_idx = fallback_tree(xyz).query(xyz[bad], k + 1)
         others = fb_idx != bad[:, None]  # drop the point itself, or the (k+1)-th if absent
         others[others.all(axis=1), -1] = False
         idx[bad, 1:] = fb_idx[others].reshape(-1, k)

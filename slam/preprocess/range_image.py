@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.errors import InputError
-from slam.preprocess.range_image_kernels import sort_rings, window_knn
+from slam.preprocess.range_image_kernels import range_image, window_knn
 
 MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-tree
 
@@ -70,24 +70,15 @@ def range_image_knn(
         raise InputError(f"ring must have one entry per point ({n}), got shape {ring.shape}")
     if not 1 <= k <= n - 1:
         raise InputError(f"k-NN needs 1 <= k <= N - 1, got k={k} for {n} points")
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    rho = np.hypot(x, y)
-    el = np.arctan2(z, rho)
-    az = np.where(rho > 0.0, np.arctan2(y, x), 0.0)
+    el = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
     rank, n_rings = ring_ranks(ring, el)
-    order, start = sort_rings(rank, az, n_rings)
-    el_s = el[order]
-    lo = np.minimum.reduceat(el_s, start[:-1])
-    hi = np.maximum.reduceat(el_s, start[:-1])
-    safe = np.where(rho > 0.0, rho, 1.0)
-    cx = np.where(rho > 0.0, x / safe, 1.0)[order]
-    cy = np.where(rho > 0.0, y / safe, 0.0)[order]
+    order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi = range_image(xyz, rank, n_rings)
     idx = np.empty((n, k), dtype=np.int64)
-    d2 = np.empty((n, k))
+    dist = np.empty((n, k))
     certified = np.empty(n, dtype=np.bool_)
     visits = np.empty(n, dtype=np.int64)
-    xyz_s, az_s = xyz[order], az[order]
     window_knn(
-        xyz_s, el_s, cx, cy, order, start, az_s, lo, hi, k, max_visits, idx, d2, certified, visits
-    )
-    return RangeImageKnn(idx, np.sqrt(d2), certified, visits)
+        xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits,
+        idx, dist, certified, visits,
+    )  # fmt: skip
+    return RangeImageKnn(idx, dist, certified, visits)

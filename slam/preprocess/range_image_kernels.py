@@ -5,9 +5,8 @@ and the certified window search. Equal to the KD-tree k-NN; tested in tests/test
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-BLOCK = 512  # points per parallel work item (one top-k buffer each)
 RING_BLOCK = 8  # consecutive points of a ring summarised by their range interval
 H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at 100 m range)
 
@@ -51,31 +50,163 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
     return order, start
 
 
-@njit(cache=True, inline="always")
-def _bound2(h: float, r2: float) -> float:
-    """Squared lower bound of the distance from p (|p|^2 = r2) to any point on a ray at
-    angle theta from p's ray, given h <= hav(theta): |p| sin(theta), |p| beyond 90 deg."""
-    h -= H_MARGIN
-    if h <= 0.0:
-        return 0.0
-    if h >= 0.5:
-        return r2
-    return 4.0 * h * (1.0 - h) * r2
+@njit(cache=True)
+def range_image(xyz: np.ndarray, rank: np.ndarray, n_rings: int):
+    """The scan sorted into its range image: (order, start, xyz_s, rng_s, el_s, az_s, cx_s,
+    cy_s, lo, hi): sorted index -> input index, ring offsets, sorted points (m), range (m),
+    elevation and azimuth (rad), unit azimuth direction, per-ring elevation range (rad)."""
+    n = len(xyz)
+    az = np.empty(n)
+    for i in range(n):
+        az[i] = np.arctan2(xyz[i, 1], xyz[i, 0]) if xyz[i, 0] != 0 or xyz[i, 1] != 0 else 0.0
+    order, start = sort_rings(rank, az, n_rings)
+    xyz_s = np.empty((n, 3))
+    rng = np.empty(n)
+    el = np.empty(n)
+    az_s = np.empty(n)
+    cx = np.empty(n)
+    cy = np.empty(n)
+    lo = np.full(n_rings, np.inf)
+    hi = np.full(n_rings, -np.inf)
+    for j in range(n_rings):
+        for s in range(start[j], start[j + 1]):
+            i = order[s]
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            xyz_s[s, 0], xyz_s[s, 1], xyz_s[s, 2] = x, y, z
+            rho = np.sqrt(x * x + y * y)
+            rng[s] = np.sqrt(x * x + y * y + z * z)
+            e = np.arctan2(z, rho)
+            el[s] = e
+            az_s[s] = az[i]
+            if rho > 0.0:
+                cx[s], cy[s] = x / rho, y / rho
+            else:
+                cx[s], cy[s] = 1.0, 0.0
+            lo[j] = min(lo[j], e)
+            hi[j] = max(hi[j], e)
+    return order, start, xyz_s, rng, el, az_s, cx, cy, lo, hi
 
 
 @njit(cache=True, inline="always")
-def _insert(bd: np.ndarray, bi: np.ndarray, nfound: int, d2: float, q: int) -> int:
-    """Insert (d2, q) into the ascending top-k buffers holding nfound entries (the caller
-    checked nfound < k or d2 < bd[k-1]); returns the new count."""
-    k = len(bd)
-    t = nfound if nfound < k else k - 1
+def _hav_lower(x: float) -> float:
+    """A lower bound of hav(x) = sin^2(x / 2) for 0 <= x <= pi (sin y >= y - y^3 / 6)."""
+    y = 0.5 * x
+    s = y - y * y * y / 6.0
+    return s * s
+
+
+@njit(cache=True, inline="always")
+def _h_star(kth2: float, r2: float) -> float:
+    """The haversine of the angle theta where |p| sin(theta) reaches the k-th distance:
+    points on rays with hav(angle) > h_star cannot be nearer (inf when none can be cut)."""
+    if kth2 >= r2:
+        return np.inf
+    c = kth2 / r2
+    return c / (2.0 * (1.0 + np.sqrt(1.0 - c))) + H_MARGIN  # root of 4h(1-h) = c, stable
+
+
+@njit(cache=True, inline="always")
+def _insert(bd: np.ndarray, bi: np.ndarray, d2: float, q: int) -> None:
+    """Insert (d2, q) into the ascending, inf-padded top-k buffers (the caller checked
+    d2 < bd[k-1]), dropping the last."""
+    t = len(bd) - 1
     while t > 0 and bd[t - 1] > d2:
         bd[t] = bd[t - 1]
         bi[t] = bi[t - 1]
         t -= 1
     bd[t] = d2
     bi[t] = q
-    return nfound + 1 if nfound < k else k
+
+
+@njit(cache=True, inline="always")
+def _ce(a: float, b: float, ia: int, ib: int) -> tuple[float, float, int, int]:
+    """Compare-exchange of a sorting network (branch-free selects)."""
+    swap = b < a
+    return (b if swap else a), (a if swap else b), (ib if swap else ia), (ia if swap else ib)
+
+
+@njit(cache=True)
+def _sort10(bd: np.ndarray, bi: np.ndarray) -> None:
+    """Sort 10 (distance, index) pairs ascending: Waksman's 29-comparator network on
+    registers; the window's first k = 10 candidates arrive in no predictable order, and
+    the mispredicted branches of insertion sort were the main cost."""
+    d0, d1, d2, d3, d4, d5, d6, d7, d8, d9 = (
+        bd[0],
+        bd[1],
+        bd[2],
+        bd[3],
+        bd[4],
+        bd[5],
+        bd[6],
+        bd[7],
+        bd[8],
+        bd[9],
+    )
+    q0, q1, q2, q3, q4, q5, q6, q7, q8, q9 = (
+        bi[0],
+        bi[1],
+        bi[2],
+        bi[3],
+        bi[4],
+        bi[5],
+        bi[6],
+        bi[7],
+        bi[8],
+        bi[9],
+    )
+    d4, d9, q4, q9 = _ce(d4, d9, q4, q9)
+    d3, d8, q3, q8 = _ce(d3, d8, q3, q8)
+    d2, d7, q2, q7 = _ce(d2, d7, q2, q7)
+    d1, d6, q1, q6 = _ce(d1, d6, q1, q6)
+    d0, d5, q0, q5 = _ce(d0, d5, q0, q5)
+    d1, d4, q1, q4 = _ce(d1, d4, q1, q4)
+    d6, d9, q6, q9 = _ce(d6, d9, q6, q9)
+    d0, d3, q0, q3 = _ce(d0, d3, q0, q3)
+    d5, d8, q5, q8 = _ce(d5, d8, q5, q8)
+    d0, d2, q0, q2 = _ce(d0, d2, q0, q2)
+    d3, d6, q3, q6 = _ce(d3, d6, q3, q6)
+    d7, d9, q7, q9 = _ce(d7, d9, q7, q9)
+    d0, d1, q0, q1 = _ce(d0, d1, q0, q1)
+    d2, d4, q2, q4 = _ce(d2, d4, q2, q4)
+    d5, d7, q5, q7 = _ce(d5, d7, q5, q7)
+    d8, d9, q8, q9 = _ce(d8, d9, q8, q9)
+    d1, d2, q1, q2 = _ce(d1, d2, q1, q2)
+    d4, d6, q4, q6 = _ce(d4, d6, q4, q6)
+    d7, d8, q7, q8 = _ce(d7, d8, q7, q8)
+    d3, d5, q3, q5 = _ce(d3, d5, q3, q5)
+    d2, d5, q2, q5 = _ce(d2, d5, q2, q5)
+    d6, d8, q6, q8 = _ce(d6, d8, q6, q8)
+    d1, d3, q1, q3 = _ce(d1, d3, q1, q3)
+    d4, d7, q4, q7 = _ce(d4, d7, q4, q7)
+    d2, d3, q2, q3 = _ce(d2, d3, q2, q3)
+    d6, d7, q6, q7 = _ce(d6, d7, q6, q7)
+    d3, d4, q3, q4 = _ce(d3, d4, q3, q4)
+    d5, d6, q5, q6 = _ce(d5, d6, q5, q6)
+    d4, d5, q4, q5 = _ce(d4, d5, q4, q5)
+    bd[0], bd[1], bd[2], bd[3], bd[4], bd[5], bd[6], bd[7], bd[8], bd[9] = (
+        d0,
+        d1,
+        d2,
+        d3,
+        d4,
+        d5,
+        d6,
+        d7,
+        d8,
+        d9,
+    )
+    bi[0], bi[1], bi[2], bi[3], bi[4], bi[5], bi[6], bi[7], bi[8], bi[9] = (
+        q0,
+        q1,
+        q2,
+        q3,
+        q4,
+        q5,
+        q6,
+        q7,
+        q8,
+        q9,
+    )
 
 
 @njit(cache=True, inline="always")
@@ -90,21 +221,22 @@ def _block_bound2(h: float, r2: float, rp: float, rmin: float, rmax: float) -> f
     return max(r2 + r * r - 2.0 * rp * r * c, 0.0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def window_knn(
     xyz: np.ndarray,
+    rng: np.ndarray,
     el: np.ndarray,
     cx: np.ndarray,
     cy: np.ndarray,
+    az: np.ndarray,
     order: np.ndarray,
     start: np.ndarray,
-    az_sorted: np.ndarray,
     lo: np.ndarray,
     hi: np.ndarray,
     k: int,
     max_visits: int,
     out_idx: np.ndarray,
-    out_d2: np.ndarray,
+    out_dist: np.ndarray,
     certified: np.ndarray,
     n_visits: np.ndarray,
 ) -> None:
@@ -112,18 +244,17 @@ def window_knn(
     ring and, in each ring, outward in azimuth from its own azimuth, until a bound proves
     that no unvisited point can be nearer than the k-th found (then certified[i] = True).
 
-    Inputs in sorted order (``sort_rings``): xyz (N, 3) m, el elevation (rad), (cx, cy) unit
-    azimuth direction, az_sorted azimuth (rad), lo/hi per-ring elevation range (rad). The
-    bounds: the spherical law of haversines, hav(theta) = hav(de) + cos(e_p) cos(e_q)
-    hav(phi) >= hav(de_min) + cos(e_p) min cos(e_ring) hav(phi_min), gives the smallest
-    angle theta to the unvisited rays; all unvisited points are >= |p| sin(theta) away, and
-    the points of a block of RING_BLOCK consecutive points >= the law-of-cosines distance at
-    that angle over the block's range interval, so such a block is skipped unread.
-    Writes out_idx (N, k) original indices and out_d2 (N, k) squared distances (m^2),
-    ascending, and n_visits (N,) the distance evaluations, at each point's original index.
-    A point that needs more than max_visits distance evaluations stops uncertified (its row
-    is then not valid)."""
-    n = len(order)
+    Inputs sorted by ``range_image``. The bounds: the spherical law of haversines,
+    hav(theta) = hav(de) + cos(e_p) cos(e_q) hav(phi) >= hav(de_min) + cos(e_p)
+    min cos(e_ring) hav(phi_min), gives the smallest angle theta from p's ray to the
+    unvisited rays (elevation gap de to the rings not searched, azimuth gap phi to the
+    columns not searched); all unvisited points are >= |p| sin(theta) away, and the points
+    of a block of RING_BLOCK consecutive points >= the law-of-cosines distance at that angle
+    over the block's range interval, so such a block is skipped unread.
+    Writes out_idx (N, k) input indices and out_dist (N, k) distances (m), ascending, and
+    n_visits (N,) the distance evaluations, at each point's input index. A point that needs
+    more than max_visits distance evaluations stops uncertified (its row is then not valid).
+    """
     n_rings = len(start) - 1
     B = RING_BLOCK
     half = (k + 1) // 2  # own-ring positions each side read before any bound is tried
@@ -140,10 +271,6 @@ def window_knn(
         bstart[j + 1] = bstart[j] + (start[j + 1] - start[j] + B - 1) // B
     for j in range(n_rings - 1, -1, -1):
         sufmin[j] = min(sufmin[j + 1], lo[j])
-    # range of every point, range interval of every block
-    rng = np.empty(n)
-    for s in range(n):
-        rng[s] = np.sqrt(xyz[s, 0] * xyz[s, 0] + xyz[s, 1] * xyz[s, 1] + xyz[s, 2] * xyz[s, 2])
     rmin = np.full(bstart[n_rings], np.inf)
     rmax = np.zeros(bstart[n_rings])
     for j in range(n_rings):
@@ -152,25 +279,26 @@ def window_knn(
             ib = bstart[j] + u // B
             rmin[ib] = min(rmin[ib], rng[a + u])
             rmax[ib] = max(rmax[ib], rng[a + u])
-    n_chunks = (n + BLOCK - 1) // BLOCK
-    for chunk in prange(n_chunks):
-        bd = np.empty(k)
-        bi = np.empty(k, dtype=np.int64)
-        g = 0
-        while start[g + 1] <= chunk * BLOCK:
-            g += 1
-        for s in range(chunk * BLOCK, min(n, (chunk + 1) * BLOCK)):
-            while start[g + 1] <= s:
-                g += 1
+    bd = np.empty(k)
+    bi = np.empty(k, dtype=np.int64)
+    cursor = np.empty(n_rings, dtype=np.int64)  # per ring: first point at azimuth >= current
+    for g in range(n_rings):  # serial: parallel=True measured slower on the 2 shared cores
+        cursor[:] = -1
+        g_a = start[g]
+        g_cnt = start[g + 1] - g_a
+        for s in range(g_a, g_a + g_cnt):
             px, py, pz = xyz[s, 0], xyz[s, 1], xyz[s, 2]
             cxp, cyp = cx[s], cy[s]
             rp = rng[s]
             r2 = rp * rp
             ep = el[s]
             cep = np.cos(ep)
-            azp = az_sorted[s]
-            nfound = 0
+            azp = az[s]
+            for t in range(k):
+                bd[t] = np.inf
+                bi[t] = -1
             visits = 0
+            hstar = np.inf
             up_open = True
             down_open = True
             m = 0
@@ -192,15 +320,13 @@ def window_knn(
                             down_open = False
                             continue
                         de = ep - prefmax[j + 1]
-                    if m > 0 and nfound == k and de > 0.0:
-                        # every ring beyond: at least this elevation gap away
-                        sh = np.sin(0.5 * de)
-                        if _bound2(sh * sh, r2) > bd[k - 1]:
-                            if side == 0:
-                                up_open = False
-                            else:
-                                down_open = False
-                            continue
+                    if m > 0 and de > 0.0 and _hav_lower(de) > hstar:
+                        # every ring beyond is at least this elevation gap away
+                        if side == 0:
+                            up_open = False
+                        else:
+                            down_open = False
+                        continue
                     a = start[j]
                     cnt = start[j + 1] - a
                     if cnt == 0:
@@ -210,6 +336,7 @@ def window_knn(
                         # (ascending distances: cheap inserts)
                         pos = s - a
                         w = min(cnt, 2 * half + 1)
+                        network = k == 10 and w == 11
                         for t in range(1, w):
                             u = pos + (t + 1) // 2 if t % 2 == 1 else pos - t // 2
                             if u < 0:
@@ -221,29 +348,45 @@ def window_knn(
                             dy = xyz[q, 1] - py
                             dz = xyz[q, 2] - pz
                             d2 = dx * dx + dy * dy + dz * dz
-                            if nfound < k or d2 < bd[k - 1]:
-                                nfound = _insert(bd, bi, nfound, d2, q)
+                            if network:
+                                bd[t - 1] = d2
+                                bi[t - 1] = q
+                            elif d2 < bd[k - 1]:
+                                _insert(bd, bi, d2, q)
+                        if network:
+                            _sort10(bd, bi)
                         visits += w - 1
+                        if bd[k - 1] < np.inf:
+                            hstar = _h_star(bd[k - 1], r2)
                         budget = cnt - w
                         u_right = pos + half + 1
                         u_left = pos - half - 1
                         he = 0.0
                     else:
-                        lo_i, hi_i = a, a + cnt  # first point of ring j at azimuth >= azp
-                        while lo_i < hi_i:
-                            mid = (lo_i + hi_i) // 2
-                            if az_sorted[mid] < azp:
-                                lo_i = mid + 1
-                            else:
-                                hi_i = mid
+                        he = _hav_lower(max(lo[j] - ep, ep - hi[j], 0.0))
+                        if he > hstar:
+                            continue  # the whole ring is too far in elevation
+                        c = cursor[j]
+                        if c < 0:  # first point of ring j at azimuth >= azp
+                            lo_i, hi_i = a, a + cnt
+                            while lo_i < hi_i:
+                                mid = (lo_i + hi_i) // 2
+                                if az[mid] < azp:
+                                    lo_i = mid + 1
+                                else:
+                                    hi_i = mid
+                            c = lo_i
+                        else:  # azimuth grows along the own ring: walk the cursor on
+                            while c < a + cnt and az[c] < azp:
+                                c += 1
+                        cursor[j] = c
                         budget = cnt
-                        u_right = lo_i - a
+                        u_right = c - a
                         u_left = u_right - 1
-                        dej = max(lo[j] - ep, ep - hi[j], 0.0)
-                        she = np.sin(0.5 * dej)
-                        he = she * she
                     coef = 0.5 * cep * clo[j]
                     ib0 = bstart[j]
+                    # stop when 1 - dot(azimuth) > (hstar - he) / coef
+                    gap = (hstar - he) / coef if coef > 0.0 else np.inf
                     for direction in range(2):
                         step = 1 if direction == 0 else -1
                         u = u_right if direction == 0 else u_left
@@ -253,9 +396,9 @@ def window_knn(
                             elif u < 0:
                                 u += cnt
                             q = a + u
-                            if nfound == k:
-                                h = he + coef * (1.0 - (cx[q] * cxp + cy[q] * cyp))
-                                if _bound2(h, r2) > bd[k - 1]:
+                            if hstar < np.inf:
+                                one_m_dot = 1.0 - (cx[q] * cxp + cy[q] * cyp)
+                                if one_m_dot > gap:
                                     break  # the frontier bounds everything beyond it
                                 # entering a block at its edge: skip it whole when its range
                                 # interval and angle keep it beyond the k-th distance
@@ -263,11 +406,10 @@ def window_knn(
                                 b1 = min(cnt, b0 + B) - 1
                                 if u == (b0 if step > 0 else b1):
                                     qf = a + (b1 if step > 0 else b0)
-                                    hf = he + coef * (1.0 - (cx[qf] * cxp + cy[qf] * cyp))
-                                    bb = _block_bound2(
-                                        min(h, hf), r2, rp, rmin[ib0 + b0 // B], rmax[ib0 + b0 // B]
-                                    )
-                                    if bb > bd[k - 1]:
+                                    far = 1.0 - (cx[qf] * cxp + cy[qf] * cyp)
+                                    hb = he + coef * min(one_m_dot, far)
+                                    ib = ib0 + b0 // B
+                                    if _block_bound2(hb, r2, rp, rmin[ib], rmax[ib]) > bd[k - 1]:
                                         n_b = min(b1 - b0 + 1, budget)
                                         budget -= n_b
                                         u += step * n_b
@@ -281,16 +423,15 @@ def window_knn(
                             dy = xyz[q, 1] - py
                             dz = xyz[q, 2] - pz
                             d2 = dx * dx + dy * dy + dz * dz
-                            if nfound < k or d2 < bd[k - 1]:
-                                nfound = _insert(bd, bi, nfound, d2, q)
+                            if d2 < bd[k - 1]:
+                                _insert(bd, bi, d2, q)
+                                if bd[k - 1] < np.inf:
+                                    hstar = _h_star(bd[k - 1], r2)
+                                    gap = (hstar - he) / coef if coef > 0.0 else np.inf
                 m += 1
             o = order[s]
-            certified[o] = visits <= max_visits and nfound == k
+            certified[o] = visits <= max_visits and bd[k - 1] < np.inf
             n_visits[o] = visits
             for t in range(k):
-                if t < nfound:
-                    out_d2[o, t] = bd[t]
-                    out_idx[o, t] = order[bi[t]]
-                else:
-                    out_d2[o, t] = np.inf
-                    out_idx[o, t] = -1
+                out_dist[o, t] = np.sqrt(bd[t])
+                out_idx[o, t] = order[bi[t]] if bi[t] >= 0 else -1
