@@ -22,6 +22,8 @@ class Scan:
     stamp: header time in seconds. xyz: (N, 3) float64, finite. intensity: (N,)
     float32 or None. ring: (N,) int16 beam index or None. time: (N,) float64
     seconds from the start of the sweep (>= 0) or None when the driver gives none.
+    odom: the robot's wheel odometry at the stamp, (x, y, theta) in m and rad in the
+    odometry's own frame, when the input carries it (2D laser logs), else None.
     """
 
     stamp: float
@@ -30,6 +32,7 @@ class Scan:
     ring: np.ndarray | None = None
     time: np.ndarray | None = None
     index: int = 0
+    odom: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -43,6 +46,7 @@ class Scan:
             ring=None if self.ring is None else self.ring[mask],
             time=None if self.time is None else self.time[mask],
             index=self.index,
+            odom=self.odom,
         )
 
 
