@@ -56,7 +56,10 @@ class CommonConfig:
     past in an exponential filter of the frame-to-frame twist used for deskewing; it breaks
     the feedback loop (a registration error -> a wrong velocity -> a distorted next scan ->
     a new error) that a raw last-motion deskew closes on weakly constrained axes.
-    cloud_voxel: voxel (m) of ``Odometry.cloud``.
+    cloud_voxel: voxel (m) of ``Odometry.cloud``: on keyframes the filtered, deskewed scan
+    (sensor frame) voxel-downsampled to this size (one real point per voxel), float32 and
+    C-contiguous, so the pipeline stores it as given (the one copy the loop verification
+    reads); empty (0, 3) on other frames.
     drift_translation / drift_rotation_deg_per_m: odometry drift per metre travelled added to
     the covariance of the keyframe-to-keyframe motion.
     plausibility: the gate of each registration (see ``slam.registration.plausibility``).
@@ -297,12 +300,13 @@ class ScanToMapFrontend:
             info_reg, degenerate = default_information(self._c.information), est is None
         is_kf = est is not None and (first or is_new_keyframe(relative, self._c.keyframe))
         info = self._keyframe_information(info_reg, relative)
-        cloud = np.zeros((0, 3))
+        cloud = np.zeros((0, 3), dtype=np.float32)
         if filtered is not None and is_kf:
             # only keyframes keep a cloud (the pipeline stores it; the first frame always
             # becomes one): no voxel pass over the scans in between
             t = time.perf_counter()
-            cloud = filtered[voxel_downsample(filtered, self._c.cloud_voxel)]
+            kept = voxel_downsample(filtered, self._c.cloud_voxel)
+            cloud = np.ascontiguousarray(filtered[kept], dtype=np.float32)
             timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
         if is_kf:
             self.T_kf = pose.copy()

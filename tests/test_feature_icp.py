@@ -56,3 +56,42 @@ def test_feature_icp_without_map_raises():
     e, p = scene(rng)
     with pytest.raises(RegistrationError):
         feature_icp_align(e, p, FeatureTarget(e + 100), FeatureTarget(p + 100), np.eye(4))
+
+
+def test_remembered_neighbourhoods_and_the_voxel_hash_change_nothing(monkeypatch):
+    """The same registration (to rounding) whether the neighbourhood analysis is redone
+    every iteration or remembered while the neighbours stay, and whether the maps are
+    cKDTrees or the voxel-hash local maps (exact k-NN); the compiled solver equals numpy."""
+    import slam.registration.feature_icp as fi
+    from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+
+    rng = np.random.default_rng(2)
+    e_map, p_map = scene(rng)
+    e_scan, p_scan = scene(rng)
+    T_inv = np.linalg.inv(se3_exp(np.array([0.01, -0.02, 0.05, 0.3, -0.2, 0.05])))
+    src = transform(T_inv, e_scan[::4]), transform(T_inv, p_scan[::4])
+    cfg = FeatureIcpConfig(max_iterations=30)
+    em = VoxelHashMap(LocalMapConfig(voxel_size=0.2, max_points_per_voxel=1000))
+    pm = VoxelHashMap(LocalMapConfig(voxel_size=0.4, max_points_per_voxel=1000))
+    assert em.add(e_map) == len(e_map) and pm.add(p_map) == len(p_map)
+    on_hash = feature_icp_align(
+        *src, FeatureTarget(em.points, em), FeatureTarget(pm.points, pm), np.eye(4), cfg
+    )
+    remembered = feature_icp_align(*src, FeatureTarget(e_map), FeatureTarget(p_map), np.eye(4), cfg)
+    call = fi._Neighbourhoods.__call__
+
+    def forgetful(self, moved):
+        self.j[:] = -1  # every neighbourhood analysed again
+        return call(self, moved)
+
+    monkeypatch.setattr(fi._Neighbourhoods, "__call__", forgetful)
+    fresh = feature_icp_align(*src, FeatureTarget(e_map), FeatureTarget(p_map), np.eye(4), cfg)
+    orig = fi.solve_weighted
+    monkeypatch.setattr(fi, "solve_weighted", lambda *a, **k: orig(*a, **k, reference=True))
+    numpy_solver = feature_icp_align(
+        *src, FeatureTarget(e_map), FeatureTarget(p_map), np.eye(4), cfg
+    )
+    assert remembered.iterations == fresh.iterations > 1
+    np.testing.assert_array_equal(remembered.T_target_source, fresh.T_target_source)
+    for other in (on_hash, numpy_solver):
+        np.testing.assert_allclose(other.T_target_source, fresh.T_target_source, atol=1e-9)

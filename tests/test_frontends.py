@@ -44,6 +44,11 @@ def test_frontend_on_simulated_corridor(corridor, name, max_err):
         sig = np.sqrt(np.diag(np.linalg.inv(o.info)))
         assert np.all(sig[3:] > 0.009) and np.all(sig[3:] < 0.5)  # plausible, not 1e-9
         assert 100 < len(o.cloud) < len(scans[0])
+        # stored as given by the pipeline: float32, contiguous, one point per cloud_voxel
+        assert o.cloud.dtype == np.float32 and o.cloud.flags["C_CONTIGUOUS"]
+        cells = np.floor(o.cloud.astype(np.float64) / fe.cfg.cloud_voxel)
+        assert len(np.unique(cells, axis=0)) >= 0.99 * len(o.cloud)
+    assert all(len(o.cloud) == 0 for o in outs if not o.is_keyframe)
     assert all("skipped" not in o.extras for o in outs)
     assert not [o.extras["lost"] for o in outs if "lost" in o.extras]  # no false "lost"
     assert all(o.extras["converged"] for o in outs[1:])

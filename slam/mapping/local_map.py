@@ -32,7 +32,9 @@ from slam.errors import ConfigError, InputError
 
 _OFFSET = np.int64(1 << 20)  # voxel coordinates are packed into 21 bits each
 _EMPTY = np.int64(-1)
-MAX_SHELLS = 4  # voxel shells scanned before the brute-force fallback of one query
+MAX_SHELLS = 4  # voxel shells scanned before the brute-force fallback of one query (or as
+# many as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
+MAX_BOUNDED_SHELLS = 12
 
 
 @dataclass
@@ -392,12 +394,16 @@ class VoxelHashMap:
         oi = np.empty((len(x), k), dtype=np.int64)
         bound = float(distance_upper_bound)
         max_d2 = bound * bound if np.isfinite(bound) else np.inf
+        shells = MAX_SHELLS
+        if np.isfinite(bound):
+            need = int(np.ceil(bound / self.cfg.voxel_size))
+            shells = min(max(shells, need), MAX_BOUNDED_SHELLS)
         _query_kernel(
             x,
             k,
             max_d2,
             float(self.cfg.voxel_size),
-            MAX_SHELLS,
+            shells,
             self._tkeys,
             self._tvals,
             self._vcount,

@@ -22,6 +22,7 @@ from slam.registration.gicp import (
     RegistrationError,
     RegistrationResult,
     _check_points,
+    _workers,
     solve_weighted,
     transform,
 )
@@ -54,7 +55,8 @@ class FeatureIcpConfig:
 
 
 class FeatureTarget:
-    """Map points (M, 3) of one feature class with their KD-tree."""
+    """Map points (M, 3) of one feature class with their KD-tree, or anything with cKDTree's
+    ``query`` (the local map ``VoxelHashMap`` answers it through its voxel hash)."""
 
     def __init__(self, points: np.ndarray, tree: cKDTree | None = None):
         self.points = _check_points(points, "feature map points")
@@ -64,18 +66,47 @@ class FeatureTarget:
         return len(self.points)
 
 
-def _neighbourhoods(moved, target: FeatureTarget, cfg: FeatureIcpConfig):
-    """(valid mask, centroids, eigenvalues ascending, eigenvectors) of k-NN map neighbourhoods."""
-    k = cfg.k_neighbors
-    if target is None or len(target) < k or len(moved) == 0:
-        return None
-    d, j = target.tree.query(moved, k=k, workers=cfg.threads)
-    ok = d[:, -1] < cfg.max_neighbor_distance
-    nb = target.points[j[ok]]
-    c = nb.mean(axis=1)
-    centred = nb - c[:, None, :]
-    w, V = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
-    return ok, c, w, V, centred
+class _Neighbourhoods:
+    """Analysis (centroid, eigen-decomposition) of the k-NN map neighbourhood of each scan
+    point, remembered between the solver's iterations: it depends on the neighbour indices
+    only, so a point whose neighbours (and their order) did not change since the last
+    iteration keeps its analysis instead of a new eigh (same numbers; most points keep their
+    neighbours once the solver is near the optimum)."""
+
+    def __init__(self, target: FeatureTarget | None, n: int, cfg: FeatureIcpConfig):
+        self.target, self.cfg = target, cfg
+        k = cfg.k_neighbors
+        self.j = np.full((n, k), -1, dtype=np.int64)
+        self.c = np.zeros((n, 3))
+        self.w = np.zeros((n, 3))
+        self.V = np.zeros((n, 3, 3))
+        self.centred = np.zeros((n, k, 3))
+
+    def __call__(self, moved: np.ndarray):
+        """(valid mask, centroids, eigenvalues ascending, eigenvectors, centred neighbours) of
+        the valid rows (k neighbours within ``max_neighbor_distance``), or None."""
+        cfg, target = self.cfg, self.target
+        k = cfg.k_neighbors
+        if target is None or len(target) < k or len(moved) == 0:
+            return None
+        # bounded search: a neighbourhood whose k-th point is beyond the limit is not used
+        d, j = target.tree.query(
+            moved,
+            k=k,
+            distance_upper_bound=cfg.max_neighbor_distance,
+            workers=_workers(len(moved), cfg.threads),
+        )
+        j = np.asarray(j, dtype=np.int64).reshape(len(moved), k)
+        ok = d.reshape(len(moved), k)[:, -1] < cfg.max_neighbor_distance
+        new = ok & np.any(j != self.j, axis=1)
+        if new.any():
+            nb = target.points[j[new]]
+            c = nb.mean(axis=1)
+            centred = nb - c[:, None, :]
+            w, V = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
+            self.c[new], self.centred[new], self.w[new], self.V[new] = c, centred, w, V
+            self.j[new] = j[new]
+        return ok, self.c[ok], self.w[ok], self.V[ok], self.centred[ok]
 
 
 def _huber(r: np.ndarray, delta: float) -> np.ndarray:
@@ -101,11 +132,13 @@ def feature_icp_align(
             f"feature ICP needs at least 6 feature points, got {len(edges) + len(planes)}"
         )
     eye = np.eye(3)
+    edge_nh = _Neighbourhoods(edge_map, len(edges), cfg)
+    plane_nh = _Neighbourhoods(plane_map, len(planes), cfg)
 
     def associate(T):
         ps, qs, Ws, rs = [], [], [], []
         moved = transform(T, edges)
-        nh = _neighbourhoods(moved, edge_map, cfg)
+        nh = edge_nh(moved)
         if nh is not None:
             ok, c, w, V, _ = nh
             line = w[:, 2] > cfg.edge_ratio * w[:, 1]
@@ -117,7 +150,7 @@ def feature_icp_align(
             Ws.append(P)
             rs.append(np.linalg.norm(e, axis=1))
         moved = transform(T, planes)
-        nh = _neighbourhoods(moved, plane_map, cfg)
+        nh = plane_nh(moved)
         if nh is not None:
             ok, c, w, V, centred = nh
             n = V[:, :, 0]
