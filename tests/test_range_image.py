@@ -103,7 +103,8 @@ def test_window_knn_equals_kdtree(name, request):
     ok = np.flatnonzero(res.certified)
     print(f"{name}: {len(xyz)} points, certified {res.certified_rate:.4f}")
     assert res.certified_rate >= CERT_MIN
-    assert_same_knn(xyz, res.idx, res.dist, ref_idx[:, 1:], ref_dist, ok)
+    assert_same_knn(xyz, res.idx[:, 1:], res.dist, ref_idx[:, 1:], ref_dist, ok)
+    assert np.array_equal(res.idx[:, 0], np.arange(len(xyz)))
     # with the KD-tree fallback: every row, self first
     idx, dist = self_knn(xyz, K, ring=ring)
     assert np.array_equal(idx[:, 0], np.arange(len(xyz)))

@@ -174,3 +174,20 @@ def test_weighted_sor_eq7_hand_computed():
     # the density term: unclamped (ratio 3.6 at p0) the sparse ends earn a wider threshold
     wide = weighted_sor_terms(dist, alpha=1.0, delta=0.0, max_density_ratio=10.0)
     assert wide.theta[0] == pytest.approx(2.44079 + 2.78027 * (1 + 3.60312), abs=1e-4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_weighted_terms_kernel_equals_numpy_reference(seed):
+    """The fused numba pass (used by weighted_sor) against the numpy eqs. (4)-(9)."""
+    from slam.preprocess.sor import knn_distances, weighted_sor_terms, weighted_sor_terms_fast
+
+    xyz, _ = lidar_scan(seed=seed)
+    dist = knn_distances(xyz, 10)
+    for alpha, mdr in ((1.0, 1.0), (0.5, 0.0), (2.0, 5.0)):
+        ref = weighted_sor_terms(dist, alpha, 1e-5, mdr)
+        fast = weighted_sor_terms_fast(dist, alpha, 1e-5, mdr)
+        for f in ("d", "rho", "theta"):
+            np.testing.assert_allclose(getattr(fast, f), getattr(ref, f), rtol=1e-12, atol=0)
+        assert fast.mu == pytest.approx(ref.mu, rel=1e-12)
+        assert fast.sigma == pytest.approx(ref.sigma, rel=1e-12)
+        assert np.array_equal(fast.d <= fast.theta, ref.d <= ref.theta)

@@ -52,11 +52,7 @@ def self_knn(
     from slam.preprocess.range_image import range_image_knn
 
     res = range_image_knn(xyz, ring, k)
-    n = len(xyz)
-    idx = np.empty((n, k + 1), dtype=np.int64)
-    idx[:, 0] = np.arange(n)
-    idx[:, 1:] = res.idx
-    dist = res.dist
+    idx, dist = res.idx, res.dist
     bad = np.flatnonzero(~res.certified)
     if len(bad):
         fb_dist, fb_idx = fallback_tree(xyz).query(xyz[bad], k + 1)

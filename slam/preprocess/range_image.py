@@ -28,9 +28,10 @@ MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-t
 
 @dataclass(frozen=True)
 class RangeImageKnn:
-    """idx (N, k) int64 indices of each point's k nearest other points, dist (N, k) their
-    distances (m), ascending; certified (N,) True where the window answer is proven exact
-    (rows where it is False are not valid); visits (N,) distance evaluations per point."""
+    """idx (N, k+1) int64 indices: each point itself, then its k nearest other points;
+    dist (N, k) the distances to those k (m), ascending; certified (N,) True where the
+    window answer is proven exact (rows where it is False are not valid); visits (N,)
+    distance evaluations per point."""
 
     idx: np.ndarray
     dist: np.ndarray
@@ -73,7 +74,7 @@ def range_image_knn(
     el = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
     rank, n_rings = ring_ranks(ring, el)
     order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi = range_image(xyz, rank, n_rings)
-    idx = np.empty((n, k), dtype=np.int64)
+    idx = np.empty((n, k + 1), dtype=np.int64)
     dist = np.empty((n, k))
     certified = np.empty(n, dtype=np.bool_)
     visits = np.empty(n, dtype=np.int64)

@@ -251,7 +251,8 @@ def window_knn(
     columns not searched); all unvisited points are >= |p| sin(theta) away, and the points
     of a block of RING_BLOCK consecutive points >= the law-of-cosines distance at that angle
     over the block's range interval, so such a block is skipped unread.
-    Writes out_idx (N, k) input indices and out_dist (N, k) distances (m), ascending, and
+    Writes out_idx (N, k+1) input indices, the point itself first, and out_dist (N, k)
+    distances (m) to the k others, ascending, and
     n_visits (N,) the distance evaluations, at each point's input index. A point that needs
     more than max_visits distance evaluations stops uncertified (its row is then not valid).
     """
@@ -432,6 +433,7 @@ def window_knn(
             o = order[s]
             certified[o] = visits <= max_visits and bd[k - 1] < np.inf
             n_visits[o] = visits
+            out_idx[o, 0] = o
             for t in range(k):
                 out_dist[o, t] = np.sqrt(bd[t])
-                out_idx[o, t] = order[bi[t]] if bi[t] >= 0 else -1
+                out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
