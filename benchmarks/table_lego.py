@@ -359,7 +359,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.plan_only:
         return 0
 
-    from slam.sim import ensure_sequence
+    from slam.sim import ensure_sequence, make_scene
+    from slam.sim.simulate import effective_model, full_frames
 
     configs = [c for c in args.configs if available(c)]
     missing = [c for c in args.configs if c not in configs]
@@ -368,8 +369,12 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     jobs = []
     for scene in args.scenes:
-        # The whole route (--frames truncates the runs), simulated once.
-        seq = ensure_sequence(scene, cache_dir=Path(args.cache_dir or out / "sim"))
+        # The route's first --frames scans (all when the route is shorter), simulated once.
+        frames = None
+        if args.frames:
+            world = make_scene(scene)
+            frames = min(args.frames, full_frames(world, effective_model(world)))
+        seq = ensure_sequence(scene, frames=frames, cache_dir=Path(args.cache_dir or out / "sim"))
         jobs += jobs_for(scene, seq, configs, args.frames, out, not args.no_ablation)
     for job in jobs:
         job["reuse"] = args.reuse

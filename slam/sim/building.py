@@ -7,7 +7,7 @@ The floor is a ladder of corridors 3.5 m wide: four long east-west corridors (y 
 and east exterior walls and a short middle spine between the first two. The corridors
 are windowless, with parallel painted or bare-concrete walls, rooms behind them (open
 doorways show the room, closed doors are shallow recesses), pilasters on the 8.4 m
-structural grid and some long plain stretches without either (the degenerate corridors
+structural grid and plain stretches of 26-30 m without either (the degenerate corridors
 of the paper's Figure 11). Open spaces: a large-span hall on three of the corridors with a
 column grid, and a 52 x 32 m atrium on the third corridor that is open above the floor
 up to a roof at 22 m. Mixed materials: painted and concrete walls, glass room fronts,
@@ -68,8 +68,10 @@ HALLS = {
     "hall_d": (210.0, 240.0, 118.0, FLOOR_Y - EXT),
 }
 
-# Stretches (corridor index, x0, x1) without doors or pilasters: plain parallel walls.
-PLAIN = ((0, 20.0, 62.0), (1, 100.0, 150.0), (2, 230.0, 282.0), (3, 40.0, 90.0))
+# Stretches (corridor index, x0, x1) without doors or pilasters: plain parallel walls,
+# 26-30 m long (a robot in the middle sees the nearest door or pilaster 13-15 m away),
+# none where a route starts or turns into a corridor.
+PLAIN = ((0, 36.0, 62.0), (1, 60.0, 90.0), (2, 236.0, 266.0), (3, 50.0, 80.0))
 
 S_ROUTE = (
     (SPINE_W, LANES[0]),
