@@ -233,3 +233,12 @@ def test_descriptor_and_proposer_are_validated():
 
         lc = load_config(name).factors["loop_closure"]
         LoopClosurePlugin.Config(**{k: v for k, v in lc.items() if k != "plugin"})
+
+
+def test_lateral_shifts_equal_shift_rows():
+    rng = np.random.default_rng(2)
+    ccs = rng.random((2, 12, 5))
+    out = pp._lateral_shifts(ccs, 3)
+    for f in range(2):
+        for k, d in enumerate(range(-3, 4)):
+            np.testing.assert_array_equal(out[f, k], pp.shift_rows(ccs[f], d))

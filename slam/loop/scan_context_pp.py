@@ -107,10 +107,18 @@ def cartesian_context(points: np.ndarray, p: ScanContextPPParams) -> np.ndarray:
     return desc.reshape(p.cc_rows, p.cc_cols)
 
 
-def lateral_key(cc: np.ndarray) -> np.ndarray:
-    """Retrieval key of a CC: mean of each lateral row, (..., cc_rows) (a longitudinal
-    shift moves content along the rows and leaves their means nearly unchanged)."""
-    return np.asarray(cc).mean(axis=-1)
+KEY_BINS = 20  # lateral key length: a KD-tree stays efficient in ~20 dimensions
+
+
+def lateral_key(cc: np.ndarray, bins: int = KEY_BINS) -> np.ndarray:
+    """Retrieval key of a CC, (..., <= bins): the mean height of each lateral band of rows
+    (a longitudinal shift moves content along the rows and leaves their means nearly
+    unchanged; bands of cc_rows / bins rows keep the key short for the KD-tree)."""
+    rows = np.asarray(cc).mean(axis=-1)
+    n = rows.shape[-1]
+    edges = np.linspace(0, n, min(bins, n) + 1).astype(np.intp)
+    sums = np.add.reduceat(rows, edges[:-1], axis=-1)
+    return sums / np.diff(edges)
 
 
 def shift_rows(a: np.ndarray, shift: int, axis: int = -2) -> np.ndarray:
@@ -179,7 +187,7 @@ class CartesianIndex:
     def __init__(self, p: ScanContextPPParams, top_k: int = 10, rebuild_every: int = 10):
         self.p, self.top_k, self.rebuild_every = p, top_k, rebuild_every
         self._cc = np.zeros((64, p.cc_rows, p.cc_cols), dtype=np.float32)
-        self._key = np.zeros((64, p.cc_rows), dtype=np.float64)
+        self._key = np.zeros((64, min(KEY_BINS, p.cc_rows)), dtype=np.float64)
         self._n = 0
         self._tree: cKDTree | None = None
         self._tree_size = 0
@@ -231,9 +239,7 @@ class CartesianIndex:
         q = np.asarray(cc, dtype=np.float64)
         flips = np.repeat([False, True], 2 * p.lateral_shifts + 1)
         lats = np.tile(np.arange(-p.lateral_shifts, p.lateral_shifts + 1), 2)
-        aug = np.stack(
-            [shift_rows(flipped(q) if f else q, int(d)) for f, d in zip(flips, lats, strict=True)]
-        )
+        aug = _lateral_shifts(np.stack([q, flipped(q)]), p.lateral_shifts).reshape(-1, *q.shape)
         rows, kd = self._nearest(lateral_key(aug), n_eligible)  # (A, K)
         pick = np.argsort(kd, axis=None, kind="stable")[: 2 * self.top_k]
         ai, ki = np.divmod(pick, rows.shape[1])
@@ -248,6 +254,16 @@ class CartesianIndex:
                 T = cc_pose(bool(flips[ai[j]]), int(lats[ai[j]]), int(dc[j]), p)
                 best[r] = CCMatch(r, float(dist[j]), T)
         return sorted(best.values(), key=lambda m: m.distance)
+
+
+def _lateral_shifts(ccs: np.ndarray, n: int) -> np.ndarray:
+    """(F, R, C) -> (F, 2n + 1, R, C): each CC moved by -n..n rows (:func:`shift_rows`)."""
+    f, r, c = ccs.shape
+    pad = np.zeros((f, r + 2 * n, c))
+    pad[:, n : n + r] = ccs
+    # shift d: out[i] = cc[i - d] = pad[i - d + n], i.e. the window starting at n - d
+    win = np.lib.stride_tricks.sliding_window_view(pad, r, axis=1)  # (F, 2n + 1, C, R)
+    return np.ascontiguousarray(win[:, ::-1].transpose(0, 1, 3, 2))
 
 
 def _paired_cc_distance(
