@@ -63,23 +63,22 @@ def available(name: str) -> bool:
     return True
 
 
-def ablation_overrides(name: str = FULL) -> list[tuple[str, list[str]]]:
-    """(label, overrides) switching off, one at a time, each enabled module of the
-    resolved recipe: frontend sections with ``enabled: true`` and enabled factor plugins
-    other than prior / odometry."""
+def _switches(name: str) -> dict[str, list[str]]:
+    """label -> overrides switching off each enabled module of the resolved recipe:
+    frontend sections with ``enabled: true``, :data:`VALUE_SWITCHES` and enabled factor
+    plugins other than prior / odometry."""
     from slam.config import load_config
     from slam.pipeline import resolved_config
 
     resolved = resolved_config(load_config(name))
-    out = []
+    out: dict[str, list[str]] = {}
 
     def walk(node: dict, path: list[str]) -> None:
         for key, value in node.items():
             if isinstance(value, dict):
                 if value.get("enabled") is True:
-                    out.append((f"no {'.'.join(path[1:] + [key])}", [
-                        ".".join(path + [key, "enabled"]) + "=false"
-                    ]))  # fmt: skip
+                    label = f"no {'.'.join(path[1:] + [key])}"
+                    out[label] = [".".join(path + [key, "enabled"]) + "=false"]
                 walk(value, path + [key])
 
     walk(resolved["frontend"], ["frontend"])
@@ -88,11 +87,19 @@ def ablation_overrides(name: str = FULL) -> list[tuple[str, list[str]]]:
         for key in path:
             node = node.get(key) if isinstance(node, dict) else None
         if node not in (None, off):
-            out.append((label, [f"frontend.{'.'.join(path)}={off}"]))
+            out[label] = [f"frontend.{'.'.join(path)}={off}"]
     for fname, params in resolved["factors"].items():
         if fname not in NOT_MODULES and params.get("enabled", True):
-            out.append((f"no {fname} factor", [f"factors.{fname}.enabled=false"]))
+            out[f"no {fname} factor"] = [f"factors.{fname}.enabled=false"]
     return out
+
+
+def ablation_overrides(name: str = FULL, baseline: str = BASELINE) -> list[tuple[str, list[str]]]:
+    """(label, overrides) switching off, one at a time, each module that ``name`` adds to
+    ``baseline`` (enabled in ``name``, not enabled in the baseline recipe)."""
+    mine = _switches(name)
+    base = _switches(baseline) if available(baseline) else {}
+    return [(label, over) for label, over in mine.items() if base.get(label) != over]
 
 
 GROUND_PLUGIN = "slam.ground_factor:GroundFactorPlugin"
@@ -139,7 +146,10 @@ def run_job(job: dict) -> dict:
     if job.get("reuse") and saved.is_file():
         row = json.loads(saved.read_text())
         if all(row.get(k) == job[k] for k in REUSE_KEYS) and "error" not in row:
-            return {**row, "reused": True}
+            keep = {k: job[k] for k in ("index", "label", "group", "out") if k in job}
+            return {**row, **keep, "reused": True}
+    if job.get("tabulate_only"):
+        return {**job, "error": "not run (--tabulate-only)"}
     config = load_config(job["config"], job["overrides"])
     if job["frames"]:
         config.source.max_frames = job["frames"]
@@ -174,7 +184,9 @@ def run_job(job: dict) -> dict:
     return row
 
 
-def jobs_for(scene: str, seq, configs, frames, out: Path, ablation: bool) -> list[dict]:
+def jobs_for(
+    scene: str, seq, configs, frames, out: Path, ablation: bool, ground_configs=()
+) -> list[dict]:
     base = {"scene": scene, "bag": str(seq.bag), "gt": str(seq.ground_truth), "frames": frames}
     jobs = []
 
@@ -188,10 +200,10 @@ def jobs_for(scene: str, seq, configs, frames, out: Path, ablation: bool) -> lis
     if ablation and FULL in configs:
         for label, over in ablation_overrides(FULL):
             add(f"{FULL} {label}", FULL, over, "ablation")
-    ground = ground_factor_overrides()
+    ground = ground_factor_overrides() if ground_configs else None
     if ground is not None:
         for name in configs:
-            if name not in (FULL,) and not name.endswith("_loop"):
+            if name in ground_configs:
                 add(f"{name} + ground factor", name, ground, "ground")
     return jobs
 
@@ -342,6 +354,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, help="only the first N frames of each sequence")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--no-ablation", action="store_true")
+    ap.add_argument("--ablation-scenes", nargs="+", default=["building"])
+    ap.add_argument(
+        "--ground-configs",
+        nargs="*",
+        default=[FULL, "improved_floam"],
+        help="configs also run with the ground factor added (on the ablation scenes)",
+    )
+    ap.add_argument(
+        "--tabulate-only", action="store_true", help="no new runs: tables of the saved rows"
+    )
     ap.add_argument(
         "--reuse", action="store_true", help="keep the rows of identical runs already in --out"
     )
@@ -375,9 +397,17 @@ def main(argv: list[str] | None = None) -> int:
             world = make_scene(scene)
             frames = min(args.frames, full_frames(world, effective_model(world)))
         seq = ensure_sequence(scene, frames=frames, cache_dir=Path(args.cache_dir or out / "sim"))
-        jobs += jobs_for(scene, seq, configs, args.frames, out, not args.no_ablation)
+        abl = not args.no_ablation and scene in args.ablation_scenes
+        ground = args.ground_configs if scene in args.ablation_scenes else ()
+        jobs += jobs_for(scene, seq, configs, args.frames, out, abl, ground)
+    for i, job in enumerate(jobs):
+        job["index"] = i  # the tables keep this order
+    # Main configs first, then the ablation, then the ground factor; slowest first.
+    order = {"main": 0, "ablation": 1, "ground": 2}
+    jobs.sort(key=lambda j: (order[j["group"]], "improved_floam" not in j["config"]))
     for job in jobs:
-        job["reuse"] = args.reuse
+        job["reuse"] = args.reuse or args.tabulate_only
+        job["tabulate_only"] = args.tabulate_only
     print(f"{len(jobs)} runs on {args.workers} worker(s)", file=sys.stderr)
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")
@@ -390,6 +420,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             print(f"[{time.perf_counter() - t0:6.0f} s] {row['scene']} {row['label']}: {status}",
                   file=sys.stderr, flush=True)  # fmt: skip
+    rows.sort(key=lambda r: r["index"])
     out.mkdir(parents=True, exist_ok=True)
     (out / "table_lego.json").write_text(json.dumps(rows, indent=2, default=str))
     text = [f"configs left out (not installed): {', '.join(missing) or 'none'}\n"]
