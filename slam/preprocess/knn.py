@@ -54,6 +54,8 @@ def self_knn(
     res = range_image_knn(xyz, ring, k)
     idx, dist = res.idx, res.dist
     bad = np.flatnonzero(~res.certified)
+    if len(bad) > len(xyz) // 4:  # rings that are no beams: the whole scan to the KD-tree
+        return self_knn(xyz, k, threads=threads)
     if len(bad):
         fb_dist, fb_idx = fallback_tree(xyz).query(xyz[bad], k + 1)
         others = fb_idx != bad[:, None]  # drop the point itself, or the (k+1)-th if absent

@@ -53,8 +53,9 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
 @njit(cache=True)
 def range_image(xyz: np.ndarray, rank: np.ndarray, n_rings: int):
     """The scan sorted into its range image: (order, start, xyz_s, rng_s, el_s, az_s, cx_s,
-    cy_s, lo, hi): sorted index -> input index, ring offsets, sorted points (m), range (m),
-    elevation and azimuth (rad), unit azimuth direction, per-ring elevation range (rad)."""
+    cy_s, lo, hi, spread): sorted index -> input index, ring offsets, sorted points (m),
+    range (m), elevation and azimuth (rad), unit azimuth direction, per-ring elevation range
+    (rad), mean absolute deviation of the elevations from their ring's mean (rad)."""
     n = len(xyz)
     az = np.empty(n)
     for i in range(n):
@@ -84,7 +85,14 @@ def range_image(xyz: np.ndarray, rank: np.ndarray, n_rings: int):
                 cx[s], cy[s] = 1.0, 0.0
             lo[j] = min(lo[j], e)
             hi[j] = max(hi[j], e)
-    return order, start, xyz_s, rng, el, az_s, cx, cy, lo, hi
+    dev = 0.0  # mean |elevation - its ring's mean elevation|
+    for j in range(n_rings):
+        a, b = start[j], start[j + 1]
+        if b > a:
+            mean = el[a:b].mean()
+            for s in range(a, b):
+                dev += abs(el[s] - mean)
+    return order, start, xyz_s, rng, el, az_s, cx, cy, lo, hi, dev / max(n, 1)
 
 
 @njit(cache=True, inline="always")
