@@ -38,7 +38,7 @@ class LegoFeatureConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
-    ground_voxel: float = 0.4
+    ground_voxel: float = 0.2
 
 
 @dataclass
@@ -105,7 +105,7 @@ class LegoLoamConfig(CommonConfig):
     features: FeatureConfig = field(default_factory=FeatureConfig)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
-    ground_voxel: float = 0.4
+    ground_voxel: float = 0.2
     registration: TwoStepConfig = field(default_factory=TwoStepConfig)
     edge_map: LocalMapConfig = field(default_factory=_edge_map)
     plane_map: LocalMapConfig = field(default_factory=_plane_map)
@@ -149,6 +149,10 @@ class LegoLoam(ScanToMapFrontend):
         """The previous frame's ground plane in the odometry frame (LPB), None here."""
         return None
 
+    def _ground_residual_points(self) -> np.ndarray | None:
+        """The points of the ground residual (LPB), None here."""
+        return None
+
     # ------------------------------------------------------------------ the frame
     def _ring(self, scan: Scan) -> np.ndarray:
         if scan.ring is not None:
@@ -176,6 +180,7 @@ class LegoLoam(ScanToMapFrontend):
             e_map, p_map = self._targets()
             rc = cfg.registration
             plane = self._ground_plane_odom()
+            g_res = self._ground_residual_points()
             T0 = T_pred
             if wide:  # tracking lost: a coarse pass from the prediction with a wider search
                 k = cfg.recovery_correspondence_factor
@@ -185,9 +190,19 @@ class LegoLoam(ScanToMapFrontend):
                     plane_threshold=rc.plane_threshold * k,
                 )
                 T0 = two_step_align(
-                    f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane
+                    f.ground,
+                    f.edges,
+                    f.planes,
+                    e_map,
+                    p_map,
+                    T_pred,
+                    coarse,
+                    plane,
+                    ground_residual_xyz=g_res,
                 ).T_target_source
-            res = two_step_align(f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane)
+            res = two_step_align(
+                f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane, ground_residual_xyz=g_res
+            )
             est = Estimate.from_registration(res, extras)
         est.pending = (f.edges, np.concatenate([f.ground, f.planes]))
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3

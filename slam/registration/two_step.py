@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -45,26 +46,28 @@ EDGE_DOF = (2, 3, 4)
 class TwoStepConfig:
     """Two-step matching settings (m, rad where not said).
 
-    k_neighbors / max_neighbor_distance / edge_ratio / plane_threshold: LOAM's
-    correspondence tests (as in ``feature_icp``). plane_min_spread (m): a plane needs its
-    neighbours spread over at least this (sqrt of the middle eigenvalue), so that a single
-    scan line (collinear points, whose "normal" is any direction around the line) is not
-    taken for a plane. huber_delta (m): robust kernel, 0 = off. two_step: run the two
-    restricted steps before the 6-DoF refinement (False = 6-DoF only, for the ablation).
-    step_iterations: LM iterations of each restricted step; max_iterations: of the final one.
-    ground_weight: weight of each E_ground residual relative to a point-to-plane residual
-    (0 = no ground residual, LeGO-LOAM as published); ground_huber (m): its robust kernel.
-    noise_floor (m): each residual class (edges, planes, ground) is weighted by
-    (noise_floor / sigma)^2, sigma = 1.4826 x its median residual (at least noise_floor),
-    re-estimated at every association: edge lines from sparse rings scatter 5-10 cm while
-    planes fit to 1 cm, and equal weights let the edges' scatter tilt the pose (0.56 deg of
-    pitch on two plaza scans); 0 = equal weights.
+    k_neighbors / max_neighbor_distance / edge_ratio / plane_threshold: LOAM's correspondence
+    tests (as in ``feature_icp``; plane_threshold 0.05 m instead of LOAM's 0.2: a neighbourhood
+    mixing the floor with the foot of a wall tilts the fitted plane the same way at every frame,
+    and the corridor's height drifted 3.9 cm in 10 m with 0.2, 2.5 cm with 0.05, 1.8 cm with
+    0.02; the park's realistic sensor needs the margin). plane_min_spread (m): a plane needs its
+    neighbours spread over at least this (sqrt of the middle eigenvalue), so that a single scan
+    line (collinear points, whose "normal" is any direction around the line) is not taken for a
+    plane. huber_delta (m): robust kernel, 0 = off. two_step: run the two restricted steps
+    before the 6-DoF refinement (False = 6-DoF only, for the ablation). step_iterations: LM
+    iterations of each restricted step; max_iterations: of the final one. ground_weight: weight
+    of each E_ground residual relative to a point-to-plane residual (0 = no ground residual,
+    LeGO-LOAM as published); ground_huber (m): its robust kernel. noise_floor (m): each residual
+    class (edges, planes, ground) is weighted by (noise_floor / sigma)^2, sigma = 1.4826 x its
+    median residual (at least noise_floor), re-estimated at every association: edge lines from
+    sparse rings scatter 5-10 cm while planes fit to 1 cm, and equal weights let the edges'
+    scatter tilt the pose (0.56 deg of pitch on two plaza scans); 0 = equal weights.
     """
 
     k_neighbors: int = 5
     max_neighbor_distance: float = 1.0
     edge_ratio: float = 3.0
-    plane_threshold: float = 0.2
+    plane_threshold: float = 0.05
     plane_min_spread: float = 0.03
     huber_delta: float = 0.1
     two_step: bool = True
@@ -129,13 +132,31 @@ def _huber(r: np.ndarray, delta: float) -> np.ndarray:
     return np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
 
 
-def _knn(moved: np.ndarray, target: FeatureTarget | None, cfg: TwoStepConfig):
+class MapTarget(Protocol):
+    """A map the matcher can search besides a FeatureTarget (e.g. an incremental map):
+    ``neighbours(queries (n, 3), k)`` -> distances (n, k) m ascending and the neighbours'
+    coordinates (n, k, 3); ``len()`` = live points."""
+
+    def __len__(self) -> int: ...
+
+    def neighbours(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+Target = FeatureTarget | MapTarget
+
+
+def _knn(moved: np.ndarray, target: Target | None, cfg: TwoStepConfig):
     k = cfg.k_neighbors
     if target is None or len(target) < k or len(moved) == 0:
         return None
-    d, j = target.tree.query(moved, k=k, workers=cfg.threads)
-    ok = d[:, -1] < cfg.max_neighbor_distance
-    nb = target.points[j[ok]]
+    if isinstance(target, FeatureTarget):
+        d, j = target.tree.query(moved, k=k, workers=cfg.threads)
+        ok = d[:, -1] < cfg.max_neighbor_distance
+        nb = target.points[j[ok]]
+    else:
+        d, nb = target.neighbours(moved, k)
+        ok = d[:, -1] < cfg.max_neighbor_distance
+        nb = nb[ok]
     c = nb.mean(axis=1)
     centred = nb - c[:, None, :]
     w, V = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
@@ -267,16 +288,21 @@ def two_step_align(
     ground_xyz: np.ndarray,
     edge_xyz: np.ndarray,
     plane_xyz: np.ndarray,
-    edge_map: FeatureTarget | None,
-    plane_map: FeatureTarget | None,
+    edge_map: Target | None,
+    plane_map: Target | None,
     init_T: np.ndarray | None = None,
     cfg: TwoStepConfig | None = None,
     ground_plane: tuple[np.ndarray, float] | None = None,
+    *,
+    ground_residual_xyz: np.ndarray | None = None,
 ) -> RegistrationResult:
     """Align a scan's features to the edge/plane maps: [roll, pitch, z] from the ground
     points, [yaw, x, y] from the edges, then a 6-DoF refinement on edges + planes (+ ground
     points, which are plane features too) + E_ground when ``ground_plane`` (n, d in the
-    odometry frame, the previous frame's fitted plane) is given and ground_weight > 0.
+    odometry frame, the previous frame's fitted plane) is given and ground_weight > 0;
+    ``ground_residual_xyz``: the points of E_ground (default: ``ground_xyz``), e.g. the
+    inliers of this scan's own plane fit, whose mean distance to their plane is zero, so
+    that the chained frame-to-frame constraint has no bias from kerbs or wall feet.
     Returns T_map_scan with the Hessian of the final step (``solve_weighted``)."""
     cfg = cfg or TwoStepConfig()
     ground = _check_points(ground_xyz, "ground points")
@@ -287,11 +313,16 @@ def two_step_align(
         raise RegistrationError(f"two-step matching needs at least 6 feature points, got {n_src}")
     T = np.eye(4) if init_T is None else np.asarray(init_T, dtype=np.float64).copy()
     use_ground = ground_plane is not None and cfg.ground_weight > 0
+    g_res = (
+        ground
+        if ground_residual_xyz is None
+        else _check_points(ground_residual_xyz, "E_ground points")
+    )
 
     def step1(T_: np.ndarray) -> Terms:
         parts = [plane_terms(T_, ground, plane_map, cfg)]
         if use_ground:
-            parts.append(ground_terms(T_, ground, ground_plane, cfg))
+            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         return Terms.join(parts)
 
     if cfg.two_step and cfg.step_iterations > 0:
@@ -304,7 +335,7 @@ def two_step_align(
     def associate(T_: np.ndarray):
         parts = [edge_terms(T_, edges, edge_map, cfg), plane_terms(T_, surf, plane_map, cfg)]
         if use_ground:
-            parts.append(ground_terms(T_, ground, ground_plane, cfg))
+            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         tm = Terms.join(parts)
         return tm.p, tm.c, tm.W, tm.w, tm.sqd
 
