@@ -244,3 +244,26 @@ def test_random_clouds_and_configurations():
         key = None if rng.random() < 0.5 else np.round(rng.random(n), 2)
         n_edges += len(assert_same(xyz, ring, cfg, azimuth_order=key).edge_idx)
     assert n_edges > 200  # the comparisons are not between empty selections
+
+
+def test_ring_order_equals_lexsort():
+    """Used points by (ring, key, index) for the ring shapes the shortcuts take (sorted,
+    strictly decreasing, a turn starting mid-ring, overlapping itself with ties, three runs,
+    random), rings interleaved as in a column-major cloud."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(-np.pi, np.pi, 500, endpoint=False)
+    over = np.r_[t[200:], t[:260]]  # 560 points: the turn overlaps its start (60 ties)
+    shapes = [t, t[::-1], np.r_[t[300:], t[:300]], over, np.r_[t[:100], t[:200], t[50:]]]
+    shapes += [rng.random(500), np.round(rng.random(500), 1), np.r_[t[:250], t[250:][::-1]]]
+    n = max(len(s) for s in shapes)
+    key = np.full((n, len(shapes)), np.nan)
+    for r, s in enumerate(shapes):
+        key[: len(s), r] = s
+    ring = np.tile(np.arange(len(shapes)), n)
+    key = key.ravel()
+    xyz = rng.normal(0, 10, (len(key), 3))
+    keep = ~np.isnan(key)
+    xyz, ring, key = xyz[keep], ring[keep], key[keep]
+    order, start = kern.ring_order(xyz, ring, key, 0.0, np.inf, len(shapes))
+    assert np.array_equal(order, np.lexsort((key, ring)))
+    assert np.array_equal(np.diff(start), [len(s) for s in shapes])

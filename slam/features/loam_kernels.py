@@ -107,6 +107,45 @@ def stable_argsort(key):
 
 
 @njit(cache=True)
+def _sort_ring(seg, key):
+    """Sort the indices seg (ascending) in place by key[seg], ties by position (stable).
+    Spinning-lidar rings take a shortcut: one non-decreasing run (nothing to do), one
+    strictly decreasing run (reversed) or two non-decreasing runs (a turn that starts
+    mid-ring, possibly overlapping itself: one merge); anything else is merge-sorted."""
+    n = len(seg)
+    if n < 2:
+        return
+    n_drop = 0
+    cut = 0
+    for j in range(1, n):
+        if key[seg[j]] < key[seg[j - 1]]:
+            n_drop += 1
+            cut = j
+    if n_drop == 0:
+        return
+    if n_drop == n - 1:  # strictly decreasing: no ties, reversing is stable
+        seg[:] = seg[::-1].copy()
+        return
+    if n_drop > 1:
+        seg[:] = seg[stable_argsort(key[seg])]
+        return
+    left = seg[:cut].copy()  # merge seg[:cut] and seg[cut:] (ties: left first)
+    i, j, o = 0, cut, 0
+    while i < cut and j < n:
+        if key[seg[j]] < key[left[i]]:
+            seg[o] = seg[j]
+            j += 1
+        else:
+            seg[o] = left[i]
+            i += 1
+        o += 1
+    while i < cut:
+        seg[o] = left[i]
+        i += 1
+        o += 1
+
+
+@njit(cache=True)
 def ring_order(xyz, ring, key, min_range, max_range, ring_max):
     """The points to use (ring >= 0, range in [min_range, max_range] m) sorted by
     (ring, key, index): their indices and the start of each non-empty ring (R + 1,) in that
@@ -145,8 +184,7 @@ def ring_order(xyz, ring, key, min_range, max_range, ring_max):
         a, b = counts[r], counts[r + 1]
         if b > a:
             start[d] = a
-            seg = order[a:b]
-            order[a:b] = seg[stable_argsort(key[seg])]
+            _sort_ring(order[a:b], key)
             d += 1
     start[n_dense] = len(order)
     return order, start
