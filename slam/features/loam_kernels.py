@@ -1,16 +1,17 @@
 """Compiled kernels of the LOAM feature selection (``slam.features.loam``).
 
-The numpy reference in ``loam._extract_features_numpy`` is the readable version; these
-kernels do the same arithmetic in the same order (so that curvature and decisions are
-bit-identical, tested in tests/test_features_fast.py) in a few sequential passes:
+The numpy reference ``loam._extract_features_numpy`` is the readable version; these kernels
+do the same arithmetic in the same order (curvature and every decision bit-identical, tested
+in tests/test_features_fast.py) in a few sequential passes:
 
-- ``ring_order``: used points sorted by (ring, key, index): a counting sort by ring, then a
-  natural merge sort per ring (a spinning LiDAR ring is one or two monotone runs of azimuth,
-  so this is linear on real scans and O(n log n) on any input).
+- ``ring_order``: used points sorted by (ring, key, index): a counting sort by ring, then per
+  ring a shortcut for the layouts of spinning lidars (sorted, reversed, or two runs of
+  azimuth merged once) or a natural merge sort (``stable_argsort``), linear on real scans
+  and O(n log n) on any input.
 - ``loam_scores``: curvature (A-LOAM, prefix sums), LOAM's occlusion and parallel-beam
-  rejections, sectors and suppression runs, edge and plane candidates.
-- ``greedy_nms``: A-LOAM's sequential greedy non-maximum suppression.
-"""
+  rejections, suppression runs, edge and plane candidates.
+- ``greedy_nms``: A-LOAM's sequential greedy non-maximum suppression, cluster by cluster.
+- ``sector_top``: the max_less_sharp sharpest picks per ring sector."""
 
 from __future__ import annotations
 
