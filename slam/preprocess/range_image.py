@@ -94,4 +94,6 @@ def range_image_knn(
         xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits,
         idx, dist, certified, visits,
     )  # fmt: skip
-    return RangeImageKnn(idx, dist, certified, visits)
+    inv = np.empty(n, dtype=np.int64)  # sorted rows back to the input order (a gather)
+    inv[order] = np.arange(n)
+    return RangeImageKnn(idx.take(inv, axis=0), dist.take(inv, axis=0), certified[inv], visits[inv])
