@@ -90,10 +90,14 @@ def range_image_knn(
         certified[:] = False
         visits[:] = 0
         return RangeImageKnn(idx, dist, certified, visits)
+    # stored ring by ring (most steps of the order +-1): rows written in place, else sorted
+    in_place = n < 2 or np.count_nonzero(np.abs(np.diff(order)) == 1) > n // 2
     window_knn(
         xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits,
-        idx, dist, certified, visits,
+        idx, dist, certified, visits, in_place,
     )  # fmt: skip
+    if in_place:
+        return RangeImageKnn(idx, dist, certified, visits)
     inv = np.empty(n, dtype=np.int64)  # sorted rows back to the input order (a gather)
     inv[order] = np.arange(n)
     return RangeImageKnn(idx.take(inv, axis=0), dist.take(inv, axis=0), certified[inv], visits[inv])

@@ -247,6 +247,7 @@ def window_knn(
     out_dist: np.ndarray,
     certified: np.ndarray,
     n_visits: np.ndarray,
+    in_input_order: bool,
 ) -> None:
     """k nearest other points of every point, searched ring by ring outward from its own
     ring and, in each ring, outward in azimuth from its own azimuth, until a bound proves
@@ -261,7 +262,8 @@ def window_knn(
     over the block's range interval, so such a block is skipped unread.
     Writes out_idx (N, k+1) input indices, the point itself first, and out_dist (N, k)
     distances (m) to the k others, ascending, certified (N,) and n_visits (N,) the distance
-    evaluations, in sorted order (row s is the input point order[s]). A point that needs
+    evaluations, in the input order if in_input_order else in sorted order (row s is the
+    input point order[s]). A point that needs
     more than max_visits distance evaluations stops uncertified (its row is then not valid).
     """
     n_rings = len(start) - 1
@@ -438,11 +440,13 @@ def window_knn(
                                     hstar = _h_star(bd[k - 1], r2)
                                     gap = (hstar - he) / coef if coef > 0.0 else np.inf
                 m += 1
-            # rows in sorted order: sequential writes (scattering them to the input order
-            # here cost a third of the kernel on column-major scans)
-            certified[s] = visits <= max_visits and bd[k - 1] < np.inf
-            n_visits[s] = visits
-            out_idx[s, 0] = order[s]
+            # rows in input order when the input is stored ring by ring (near-sequential
+            # writes), else in sorted order (scattered writes cost a third of the kernel on
+            # column-major scans; the caller gathers them back)
+            o = order[s] if in_input_order else s
+            certified[o] = visits <= max_visits and bd[k - 1] < np.inf
+            n_visits[o] = visits
+            out_idx[o, 0] = order[s]
             for t in range(k):
-                out_dist[s, t] = np.sqrt(bd[t])
-                out_idx[s, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
+                out_dist[o, t] = np.sqrt(bd[t])
+                out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
