@@ -5,6 +5,16 @@ the exclusion window (plus, optionally, keyframes within ``proximity_radius`` m 
 current estimate) -> column-shift distance -> GICP verification of the best candidates
 -> ``BetweenFactorPose3(key(candidate), key(current), T_candidate_current)`` with a robust
 noise model. Every verified candidate is recorded in ``events`` (``write_csv`` -> loops.csv).
+
+descriptor scan_context_pp: Scan Context++ (polar context of the non-ground points and the
+augmented Cartesian context, :mod:`slam.loop.scan_context_pp`) proposes, a CC match with
+its initial pose. proposer radius: LeGO-LOAM's nearest keyframe within ``radius`` m.
+
+Cost: the plugin keeps descriptors and keys only; verification reads the pipeline's
+``Keyframe.cloud`` through the GraphView. A candidate whose estimate the odometry gates
+already rule out (too far, or turned the wrong way) is rejected before GICP
+(:meth:`LoopClosurePlugin._unreachable`), which on the urban block grid is most of the
+look-alike street candidates.
 """
 
 from __future__ import annotations
