@@ -119,9 +119,12 @@ def project(
     return; row = rank of the point's beam by median elevation (bottom first)."""
     rng = np.linalg.norm(xyz, axis=1)
     elev = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
-    beams, inv = np.unique(ring, return_inverse=True)
+    beams, inv, counts = np.unique(ring, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    med = np.array([np.median(elev[inv == b]) for b in range(len(beams))])  # <= 128 beams
+    # median elevation of each beam: one sort by (beam, elevation), the middle of each run
+    srt = elev[np.lexsort((elev, inv))]
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    med = 0.5 * (srt[start + (counts - 1) // 2] + srt[start + counts // 2])
     rank = np.empty(len(beams), dtype=np.int64)
     rank[np.argsort(med, kind="stable")] = np.arange(len(beams))
     row = rank[inv]
