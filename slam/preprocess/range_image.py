@@ -22,7 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.errors import InputError
-from slam.preprocess.range_image_kernels import range_image, window_knn
+from slam.preprocess.range_image_kernels import range_image, ring_ranks, window_knn
+
+__all__ = ["RangeImageKnn", "range_image_knn", "ring_ranks"]
 
 MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-tree
 # Rings whose points deviate more than this (rad, mean absolute) from their ring's mean
@@ -50,20 +52,6 @@ class RangeImageKnn:
         return float(self.certified.mean()) if len(self.certified) else 1.0
 
 
-def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
-    """(N,) rank of each point's ring among the rings present, ordered by their mean
-    elevation (rad), and the number of rings present. Any integer ring labels."""
-    ring = np.asarray(ring).astype(np.int64, copy=False)
-    r0 = int(ring.min())
-    ids = ring - r0
-    counts = np.bincount(ids)
-    present = np.flatnonzero(counts)
-    mean_el = np.bincount(ids, weights=el)[present] / counts[present]
-    lut = np.zeros(len(counts), dtype=np.int64)
-    lut[present[np.argsort(mean_el, kind="stable")]] = np.arange(len(present))
-    return lut[ids], len(present)
-
-
 def range_image_knn(
     xyz: np.ndarray, ring: np.ndarray, k: int, *, max_visits: int = MAX_VISITS
 ) -> RangeImageKnn:
@@ -77,9 +65,9 @@ def range_image_knn(
         raise InputError(f"ring must have one entry per point ({n}), got shape {ring.shape}")
     if not 1 <= k <= n - 1:
         raise InputError(f"k-NN needs 1 <= k <= N - 1, got k={k} for {n} points")
-    el = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-    rank, n_rings = ring_ranks(ring, el)
-    order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread = range_image(xyz, rank, n_rings)
+    order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread = range_image(
+        xyz, ring.astype(np.int64, copy=False)
+    )
     idx = np.empty((n, k + 1), dtype=np.int64)
     dist = np.empty((n, k))
     certified = np.empty(n, dtype=np.bool_)

@@ -15,8 +15,8 @@ H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at
 def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarray, np.ndarray]:
     """Order of the points by (ring rank, azimuth) and the ring offsets into it (n_rings + 1).
 
-    A counting sort by ring, then each ring by azimuth; rings that arrive in (reversed)
-    azimuth order, as most drivers store them, cost one pass instead of a sort."""
+    A counting sort by ring, then each ring by azimuth; rings that arrive in (reversed,
+    rotated) azimuth order, as most drivers store them, cost one pass instead of a sort."""
     n = len(rank)
     start = np.zeros(n_rings + 1, dtype=np.int64)
     for i in range(n):
@@ -32,7 +32,7 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
         a, b = start[j], start[j + 1]
         if b - a < 2:
             continue
-        seg = order[a:b]
+        seg = order[a:b].copy()
         asc = 0
         desc = 0
         for t in range(b - a - 1):
@@ -41,43 +41,92 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
                 asc += 1
             elif d < 0:
                 desc += 1
+        if asc < desc:  # clockwise drivers
+            seg = seg[::-1].copy()
+            asc, desc = desc, asc
         if desc == 0:
-            continue
-        if asc == 0:
-            order[a:b] = seg[::-1].copy()
-            continue
-        order[a:b] = seg[np.argsort(az[seg], kind="mergesort")]
+            order[a:b] = seg
+        elif desc == 1 and az[seg[-1]] <= az[seg[0]]:  # sorted from another start: rotate
+            t = 0
+            while az[seg[t + 1]] >= az[seg[t]]:
+                t += 1
+            order[a : b - t - 1] = seg[t + 1 :]
+            order[b - t - 1 : b] = seg[: t + 1]
+        else:
+            order[a:b] = seg[np.argsort(az[seg], kind="mergesort")]
     return order, start
 
 
+@njit(cache=True, inline="always")
+def _pseudo_azimuth(x: float, y: float) -> float:
+    """A monotone stand-in for atan2(y, x), in [-2, 2] (the "diamond angle", wrapping where
+    atan2 does): sorting and searching by azimuth need its order only; the bounds use the
+    unit direction (cx, cy)."""
+    if x == 0.0 and y == 0.0:
+        return 0.0
+    if y >= 0.0:
+        return y / (x + y) if x >= 0.0 else 1.0 - x / (y - x)
+    return y / (x + y) - 2.0 if x < 0.0 else x / (x - y) - 1.0
+
+
 @njit(cache=True)
-def range_image(xyz: np.ndarray, rank: np.ndarray, n_rings: int):
+def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
+    """(N,) rank of each point's ring among the rings present, ordered by their mean
+    elevation el (rad), and the number of rings present. Any integer ring labels."""
+    n = len(ring)
+    r0 = ring.min()
+    size = ring.max() - r0 + 1
+    counts = np.zeros(size, dtype=np.int64)
+    sums = np.zeros(size)
+    for i in range(n):
+        counts[ring[i] - r0] += 1
+        sums[ring[i] - r0] += el[i]
+    present = np.flatnonzero(counts)
+    means = sums[present] / counts[present]
+    lut = np.zeros(size, dtype=np.int64)
+    lut[present[np.argsort(means, kind="mergesort")]] = np.arange(len(present))
+    rank = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        rank[i] = lut[ring[i] - r0]
+    return rank, len(present)
+
+
+@njit(cache=True)
+def range_image(xyz: np.ndarray, ring: np.ndarray):
     """The scan sorted into its range image: (order, start, xyz_s, rng_s, el_s, az_s, cx_s,
     cy_s, lo, hi, spread): sorted index -> input index, ring offsets, sorted points (m),
-    range (m), elevation and azimuth (rad), unit azimuth direction, per-ring elevation range
-    (rad), mean absolute deviation of the elevations from their ring's mean (rad)."""
+    range (m), elevation (rad), pseudo-azimuth (``_pseudo_azimuth``), unit azimuth
+    direction, per-ring elevation range (rad), mean absolute deviation of the elevations
+    from their ring's mean (rad). Rings ordered by mean elevation (``ring_ranks``)."""
     n = len(xyz)
     az = np.empty(n)
+    el = np.empty(n)
     for i in range(n):
-        az[i] = np.arctan2(xyz[i, 1], xyz[i, 0]) if xyz[i, 0] != 0 or xyz[i, 1] != 0 else 0.0
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        az[i] = _pseudo_azimuth(x, y)
+        el[i] = np.arctan2(z, np.sqrt(x * x + y * y))
+    rank, n_rings = ring_ranks(ring, el)
     order, start = sort_rings(rank, az, n_rings)
     xyz_s = np.empty((n, 3))
     rng = np.empty(n)
-    el = np.empty(n)
+    el_s = np.empty(n)
     az_s = np.empty(n)
     cx = np.empty(n)
     cy = np.empty(n)
     lo = np.full(n_rings, np.inf)
     hi = np.full(n_rings, -np.inf)
+    dev = 0.0  # sum |elevation - its ring's mean elevation|
     for j in range(n_rings):
+        mean = 0.0
         for s in range(start[j], start[j + 1]):
             i = order[s]
             x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
             xyz_s[s, 0], xyz_s[s, 1], xyz_s[s, 2] = x, y, z
             rho = np.sqrt(x * x + y * y)
             rng[s] = np.sqrt(x * x + y * y + z * z)
-            e = np.arctan2(z, rho)
-            el[s] = e
+            e = el[i]
+            el_s[s] = e
+            mean += e
             az_s[s] = az[i]
             if rho > 0.0:
                 cx[s], cy[s] = x / rho, y / rho
@@ -85,14 +134,11 @@ def range_image(xyz: np.ndarray, rank: np.ndarray, n_rings: int):
                 cx[s], cy[s] = 1.0, 0.0
             lo[j] = min(lo[j], e)
             hi[j] = max(hi[j], e)
-    dev = 0.0  # mean |elevation - its ring's mean elevation|
-    for j in range(n_rings):
-        a, b = start[j], start[j + 1]
-        if b > a:
-            mean = el[a:b].mean()
-            for s in range(a, b):
-                dev += abs(el[s] - mean)
-    return order, start, xyz_s, rng, el, az_s, cx, cy, lo, hi, dev / max(n, 1)
+        if start[j + 1] > start[j]:
+            mean /= start[j + 1] - start[j]
+            for s in range(start[j], start[j + 1]):
+                dev += abs(el_s[s] - mean)
+    return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, dev / max(n, 1)
 
 
 @njit(cache=True, inline="always")
