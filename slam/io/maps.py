@@ -5,7 +5,7 @@ A run's map is not the concatenation of every keyframe cloud (that grows with th
 was copied twice more by the writer): :class:`VoxelCentroidMap` takes one transformed cloud
 at a time, keeps per occupied voxel the sum and count of its points, and merges buffered
 clouds into its sorted voxel table every ``chunk_points`` points. Memory is bounded by the
-number of occupied voxels (36 bytes each) plus one chunk (about 100 bytes a point).
+number of occupied voxels (24 bytes each) plus one chunk (about 60 bytes a point).
 :func:`voxel_centroids` is the one-shot numpy reference it equals.
 """
 
@@ -34,14 +34,29 @@ _HALF = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
 
 
+def _cells(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer voxel coordinates (float64 (N, 3)) and the mask of those inside the key range."""
+    cells = np.floor(np.asarray(points, dtype=np.float64) / voxel)
+    return cells, np.all(np.abs(cells) < _HALF, axis=1)
+
+
+def _pack(cells: np.ndarray) -> np.ndarray:
+    c = cells.astype(np.int64) + _HALF
+    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+
+
+def voxel_corner(keys: np.ndarray, voxel: float) -> np.ndarray:
+    """(M, 3) float64 lower corner (m) of the voxels with these keys (inverse of the key)."""
+    c = [((keys >> (shift * _BITS)) & _MASK) - _HALF for shift in (2, 1, 0)]
+    return np.column_stack(c).astype(np.float64) * voxel
+
+
 def voxel_key(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Absolute int64 key of the voxel (edge ``voxel`` m, grid through the origin) holding
     each of ``points`` (N, 3) m, and the mask of points inside the key range (+-2^20
     voxels per axis); keys are equal exactly when the voxels are."""
-    cells = np.floor(np.asarray(points, dtype=np.float64) / voxel)
-    inside = np.all(np.abs(cells) < _HALF, axis=1)
-    c = cells[inside].astype(np.int64) + _HALF
-    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2], inside
+    cells, inside = _cells(points, voxel)
+    return _pack(cells[inside]), inside
 
 
 def voxel_centroids(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -62,7 +77,9 @@ class VoxelCentroidMap:
     ``chunk_points`` points (up to 4 x that on large maps: a quarter of the table's voxels,
     so that the O(M) merges stay few) it is reduced per voxel and merged into the
     table (one ``searchsorted`` pass, no per-point Python). ``centroids()`` gives (M, 3)
-    float64.
+    float64. The table holds per voxel its int64 key, the float32 sum of the points'
+    offsets from the voxel's corner (< voxel each: exact to ~1e-8 m, unlike float32
+    world coordinates) and a uint32 count: 24 bytes a voxel.
     voxel <= 0 keeps every point (float32), as ``write_map`` does. Points farther than
     2^20 voxels from the origin (a run-away estimate) are dropped and counted in
     ``dropped``.
@@ -76,9 +93,9 @@ class VoxelCentroidMap:
         self.dropped = 0
         self.points_added = 0
         self._keys = np.zeros(0, dtype=np.int64)
-        self._sums = np.zeros((0, 3), dtype=np.float64)
-        self._counts = np.zeros(0, dtype=np.float64)
-        self._buffer: list[np.ndarray] = []  # clouds not merged yet (voxel <= 0: the map)
+        self._sums = np.zeros((0, 3), dtype=np.float32)  # offsets from the voxel corner
+        self._counts = np.zeros(0, dtype=np.uint32)
+        self._buffer: list[np.ndarray] = []  # offsets not merged yet (voxel <= 0: the map)
         self._buffer_keys: list[np.ndarray] = []  # their voxel keys
         self._buffered = 0
 
@@ -96,11 +113,13 @@ class VoxelCentroidMap:
             self._buffer.append(np.asarray(pts, dtype=np.float32))
             self._buffered += len(pts)
             return
-        keys, inside = voxel_key(pts, self.voxel)
-        self.dropped += int(len(pts) - len(keys))
-        self._buffer.append(pts if len(keys) == len(pts) else pts[inside])
-        self._buffer_keys.append(keys)
-        self._buffered += len(keys)
+        cells, inside = _cells(pts, self.voxel)
+        if not inside.all():
+            self.dropped += int(len(pts) - inside.sum())
+            pts, cells = pts[inside], cells[inside]
+        self._buffer.append((pts - cells * self.voxel).astype(np.float32))
+        self._buffer_keys.append(_pack(cells))
+        self._buffered += len(pts)
         if self._buffered >= min(
             max(self.chunk_points, len(self._keys) // 4), 4 * self.chunk_points
         ):
@@ -116,15 +135,15 @@ class VoxelCentroidMap:
     def _merge(self) -> None:
         if self.voxel <= 0 or not self._buffer:
             return
-        pts, keys = np.concatenate(self._buffer), np.concatenate(self._buffer_keys)
+        offsets, keys = np.concatenate(self._buffer), np.concatenate(self._buffer_keys)
         self._buffer, self._buffer_keys, self._buffered = [], [], 0
         uniq, inv = np.unique(keys, return_inverse=True)
         del keys
-        counts = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
+        counts = np.bincount(inv, minlength=len(uniq)).astype(np.uint32)
         sums = np.column_stack(
-            [np.bincount(inv, weights=pts[:, a], minlength=len(uniq)) for a in range(3)]
-        )
-        del pts, inv
+            [np.bincount(inv, weights=offsets[:, a], minlength=len(uniq)) for a in range(3)]
+        ).astype(np.float32)
+        del offsets, inv
         pos = np.searchsorted(self._keys, uniq)
         known = pos < len(self._keys)
         known[known] = self._keys[pos[known]] == uniq[known]
@@ -137,6 +156,11 @@ class VoxelCentroidMap:
             self._sums = np.insert(self._sums, at, sums[new], axis=0)
             self._counts = np.insert(self._counts, at, counts[new])
 
+    def _centroids(self, lo: int, hi: int) -> np.ndarray:
+        """Centroids (float64) of table rows lo..hi-1."""
+        mean = self._sums[lo:hi].astype(np.float64) / self._counts[lo:hi, None]
+        return voxel_corner(self._keys[lo:hi], self.voxel) + mean
+
     def write(self, path: str | Path, block: int = 1 << 20) -> int:
         """Write the centroids to ``path`` (.pcd/.ply, binary float32) ``block`` voxels at a
         time (no full float64 copy of the map); returns the number of points written."""
@@ -145,10 +169,7 @@ class VoxelCentroidMap:
             return write_points(path, self.centroids())
         self._merge()
         n = len(self._keys)
-        blocks = (
-            self._sums[i : i + block] / self._counts[i : i + block, None]
-            for i in range(0, n, block)
-        )
+        blocks = (self._centroids(i, min(i + block, n)) for i in range(0, n, block))
         return _write_blocks(path, n, blocks)
 
     def centroids(self) -> np.ndarray:
@@ -158,7 +179,7 @@ class VoxelCentroidMap:
                 return np.zeros((0, 3), dtype=np.float32)
             return np.concatenate(self._buffer)
         self._merge()
-        return self._sums / self._counts[:, None]
+        return self._centroids(0, len(self._keys))
 
 
 def _map_path(path: str | Path) -> Path:
