@@ -90,7 +90,8 @@ class ImprovedFloam(ScanToMapFrontend):
         cfg = self.cfg
         t = time.perf_counter()
         raw = scan.xyz
-        nbh = neighbourhoods(raw, cfg.sor.k) if cfg.sor.enabled else None
+        # with the scan's rings: the exact range-image k-NN (same neighbours as a KD-tree)
+        nbh = neighbourhoods(raw, cfg.sor.k, ring=scan.ring) if cfg.sor.enabled else None
         keep = apply_sor(raw, cfg.sor, nbh)
         scan = scan.select(keep) if not keep.all() else scan
         xyz = scan.xyz
@@ -98,9 +99,13 @@ class ImprovedFloam(ScanToMapFrontend):
         extras: dict = {"n_after_sor": int(len(xyz)), "_filtered_xyz": xyz}
 
         t = time.perf_counter()
+        rings = scan.ring
+        if rings is None:  # a driver without a ring field: inferred once for both users
+            rings = ring_from_elevation(xyz, cfg.features.n_beams, cfg.features.fov_deg)
+        rings = np.asarray(rings)
         feats = extract_features(
             xyz,
-            scan.ring,
+            rings,
             self._features_no_kappa,
             top_picks=False,
         )
@@ -130,10 +135,6 @@ class ImprovedFloam(ScanToMapFrontend):
         t = time.perf_counter()
         rc = cfg.registration
         src_idx = np.concatenate([e_idx, p_idx])
-        rings = scan.ring
-        if rings is None:
-            rings = ring_from_elevation(xyz, cfg.features.n_beams, cfg.features.fov_deg)
-        rings = np.asarray(rings)
         if cfg.covariance_source == "scan":
             ref_idx = np.concatenate([voxel_downsample(xyz, cfg.covariance_voxel), src_idx])
         else:
@@ -182,19 +183,26 @@ class ImprovedFloam(ScanToMapFrontend):
         if cfg.map_covariance == "map" and n_new and len(self.map) >= rc.k_covariance:
             # eq. (1) on the map: the new points and every map point having one of them among
             # its k neighbours get their covariance (re)computed from the current map
-            new = np.arange(len(self.map) - n_new, len(self.map))
-            dirty = new
+            n_old = len(self.map) - n_new
+            new = np.arange(n_old, len(self.map))
+            pts = self.map.points
+            _, nb = self.map.query(pts[new], k=rc.k_covariance)
+            dirty, nb_dirty = new, nb
             if cfg.map_refresh == "neighbours":
-                _, nb = self.map.query(self.map.points[new], k=rc.k_covariance)
-                dirty = np.unique(np.concatenate([new, nb.ravel()]))
+                # the old points among the new points' neighbours; the new ones (the last
+                # rows) reuse the query above
+                old = np.unique(nb[nb < n_old])
+                _, nb_old = self.map.query(pts[old], k=rc.k_covariance)
+                dirty = np.concatenate([old, new])
+                nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
             self.map.covs[dirty] = estimate_covariances(
-                self.map.points,
+                pts,
                 rc.k_covariance,
                 rc.lambda_reg,
                 rc.covariance_mode,
-                query=self.map.points[dirty],
-                tree=self.map,
+                query=pts[dirty],
                 plane_epsilon=rc.plane_epsilon,
                 line_ratio=rc.line_ratio,
                 threads=rc.threads,
+                neighbours=nb_dirty,
             )

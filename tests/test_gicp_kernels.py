@@ -17,6 +17,7 @@ from slam.registration import kernels
 from slam.registration.gicp import (
     GicpConfig,
     GicpTarget,
+    RegistrationError,
     _cost,
     _linearise,
     estimate_covariances,
@@ -139,3 +140,17 @@ def test_covariance_kernel_equals_numpy(labels):
     fast = estimate_covariances(xyz, 10, 1e-6, **kw)
     ref = estimate_covariances(xyz, 10, 1e-6, reference=True, **kw)
     np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-15)
+
+
+def test_covariances_from_given_neighbours_equal_a_new_query():
+    """The map refresh hands over the k-NN it already has: the same covariances."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(12)
+    xyz = rng.uniform(-5, 5, (2000, 3)) * [1, 1, 0.2]
+    q = xyz[:300] + 0.01
+    _, idx = cKDTree(xyz).query(q, k=10)
+    given = estimate_covariances(xyz, 10, 1e-6, query=q, neighbours=idx)
+    np.testing.assert_array_equal(given, estimate_covariances(xyz, 10, 1e-6, query=q))
+    with pytest.raises(RegistrationError):
+        estimate_covariances(xyz, 10, 1e-6, query=q, neighbours=idx[:, :5])

@@ -266,6 +266,7 @@ def estimate_covariances(
     span_distance: float = 0.0,
     threads: int = 2,
     reference: bool = False,
+    neighbours: np.ndarray | None = None,
 ) -> np.ndarray:
     """(M, 3, 3) covariances (m^2) of the k nearest neighbours in ``xyz`` of each query point.
 
@@ -296,15 +297,22 @@ def estimate_covariances(
     the sensor, trusting it pulls every registration toward zero motion.
 
     ``tree``: a cKDTree of ``xyz`` or anything with its ``query`` (the local map). reference:
-    eq. (1) by numpy einsum instead of the compiled kernel (same numbers).
+    eq. (1) by numpy einsum instead of the compiled kernel (same numbers). neighbours:
+    the (M, k) indices into ``xyz`` of each query's k nearest points when the caller has
+    them already (the same query is then not repeated).
     """
     xyz = _check_points(xyz, "points")
     query = xyz if query is None else _check_points(query, "query points")
     if len(xyz) < 3:
         raise RegistrationError(f"need at least 3 points for covariances, got {len(xyz)}")
     k_eff = min(k, len(xyz))
-    tree = cKDTree(xyz) if tree is None else tree
-    _, idx = tree.query(query, k=k_eff, workers=_workers(len(query), threads))
+    if neighbours is not None:
+        idx = np.asarray(neighbours, dtype=np.int64)
+        if idx.shape != (len(query), k_eff):
+            raise RegistrationError(f"neighbours must be ({len(query)}, {k_eff}), got {idx.shape}")
+    else:
+        tree = cKDTree(xyz) if tree is None else tree
+        _, idx = tree.query(query, k=k_eff, workers=_workers(len(query), threads))
     if reference:
         nb = xyz[idx.reshape(len(query), k_eff)]
         centred = nb - nb.mean(axis=1, keepdims=True)
