@@ -70,8 +70,9 @@ def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -
 
     ring: (N,) beam index of each point (``scan.ring``) when known: the exact range-image
     search (``slam.preprocess.range_image``; same distances as the KD-tree, same index sets
-    up to ties, ~10x faster on spinning-lidar scans). Without it: one KD-tree build and one
-    batch query."""
+    up to ties; 1.3-2.5x less time than the KD-tree on 16- and 64-beam scans, measured in
+    benchmarks/bench_preprocess.py --scans). Without it: one KD-tree build and one batch
+    query."""
     k_eff = min(k, len(xyz) - 1)
     if k_eff < 1:
         idx, dist = knn(xyz, xyz, k_eff + 1)
