@@ -134,6 +134,9 @@ def test_wrong_rings_cost_speed_not_exactness(corridor):
         assert_same_knn(xyz, idx[:, 1:], dist, ref_idx[:, 1:], ref_dist)
     # shuffled labels only reorder the rings: the search is as good as with the true ones
     assert range_image_knn(xyz, perm[ring], K).certified_rate >= CERT_MIN
+    # sparse labels (a driver's laser ids, say) are compacted, same answer
+    idx, dist = self_knn(xyz, K, ring=ring.astype(np.int64) * 1_000_000_007)
+    assert_same_knn(xyz, idx[:, 1:], dist, ref_idx[:, 1:], ref_dist)
     # labels that are no beams go to the KD-tree whole (the window would be 2-4x slower)
     for labels in (np.zeros(len(xyz), int), rng.integers(0, 16, len(xyz))):
         assert range_image_knn(xyz, labels, K).certified_rate == 0.0
