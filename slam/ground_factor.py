@@ -53,17 +53,20 @@ class GroundFactorConfig(FactorConfig):
     the keyframes within it are tied to one anchor keyframe's ground. sigma_height (m) and
     sigma_tilt_deg: noise of the plane's height and normal. gate_height (m) and
     gate_tilt_deg: a keyframe whose plane disagrees more with the current pose guess is not
-    constrained (slope change, kerb, wrong plane). max_rmse (m): planes fitted with larger
-    residuals are not used.
+    constrained (slope change, kerb, wrong plane); in chain mode the tilt's height error
+    over the distance to the anchor counts against gate_height (curved terrain). max_rmse
+    (m): planes fitted with larger residuals are not used. Defaults are cautious: planes of
+    real 16-beam scans scatter by 0.3-1 deg (beam calibration, kerbs, the car pitching),
+    and hills bend within 10 m; on a known flat floor 0.2 deg and 20 m correct more.
     up, max_tilt_deg, min_depth, max_range, inlier_band, min_inliers: the RANSAC ground fit
     (slam.preprocess.ground.RansacGroundConfig) when the front end gives no plane."""
 
     mode: str = "chain"
-    segment_length: float = 20.0
-    sigma_height: float = 0.03
-    sigma_tilt_deg: float = 0.2
-    gate_height: float = 0.3
-    gate_tilt_deg: float = 3.0
+    segment_length: float = 10.0
+    sigma_height: float = 0.05
+    sigma_tilt_deg: float = 0.5
+    gate_height: float = 0.1
+    gate_tilt_deg: float = 0.7
     max_rmse: float = 0.06
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
     max_tilt_deg: float = 15.0
@@ -172,9 +175,16 @@ class GroundFactorPlugin:
         self.config = config or GroundFactorConfig()
         self._anchor: tuple[int, np.ndarray, float] | None = None  # kf id, n, d (sensor)
         self._travelled = 0.0  # m since the anchor keyframe
+        self._odo_since_anchor = np.eye(4)  # T_anchor_current from the odometry alone
         self._world: tuple[np.ndarray, float] | None = None  # global mode: the ground
         self.added = 0
         self.skipped: dict[str, int] = {}
+        # per keyframe with a plane: (kf id, reference id (-1: world), tilt deg, step m,
+        # lever m, factor added)
+        self.history: list[tuple[int, int, float, float, float, bool]] = []
+
+    def _new_anchor(self, kf_id: int, n: np.ndarray, d: float) -> None:
+        self._anchor, self._travelled, self._odo_since_anchor = (kf_id, n, d), 0.0, np.eye(4)
 
     def _skip(self, reason: str) -> list[gtsam.NonlinearFactor]:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -202,20 +212,27 @@ class GroundFactorPlugin:
             return None
         return fit.normal, fit.d
 
-    def _noise(self, n_b: np.ndarray) -> gtsam.noiseModel.Base:
+    def _noise(self, n_b: np.ndarray, lever: float = 0.0) -> gtsam.noiseModel.Base:
+        """Noise of a plane measurement; the height ``lever`` m away from where the plane was
+        measured is uncertain by the normal's error times the lever too."""
         c = self.config
-        info = ground_information(n_b, np.radians(c.sigma_tilt_deg), c.sigma_height)
+        tilt = np.radians(c.sigma_tilt_deg)
+        info = ground_information(n_b, tilt, float(np.hypot(c.sigma_height, lever * tilt)))
         return robust_noise(gtsam.noiseModel.Gaussian.Information(info), c.robust, c.robust_param)
 
-    def _gated(self, tilt: float, step: float) -> bool:
+    def _gated(self, tilt: float, step: float, lever: float = 0.0) -> bool:
+        """The plane agrees with the pose guess: tilt (rad) within gate_tilt_deg, and the
+        height step plus the tilt's effect over the lever (m) within gate_height."""
         c = self.config
-        return tilt <= np.radians(c.gate_tilt_deg) and abs(step) <= c.gate_height
+        return tilt <= np.radians(c.gate_tilt_deg) and abs(step) + tilt * lever <= c.gate_height
 
     def on_keyframe(self, kf: Keyframe, graph: GraphView) -> list[gtsam.NonlinearFactor]:
         if not self.config.enabled:
             return []
         if kf.id > 0:
-            self._travelled += float(np.linalg.norm(np.asarray(kf.relative)[:3, 3]))
+            rel = np.asarray(kf.relative, dtype=np.float64)
+            self._travelled += float(np.linalg.norm(rel[:3, 3]))
+            self._odo_since_anchor = self._odo_since_anchor @ rel
         plane = self.plane(kf)
         if plane is None:
             return []
@@ -227,21 +244,29 @@ class GroundFactorPlugin:
                 return []  # the first keyframe defines the ground (the prior fixes it)
             n_w, d_w = self._world
             T_meas, tilt, step = ground_corrected(T_wb, n_w, d_w, n_b, d_b)
-            if not self._gated(tilt, step):
+            ok = self._gated(tilt, step)
+            self.history.append((kf.id, -1, float(np.degrees(tilt)), step, 0.0, ok))
+            if not ok:
                 return self._skip("gate")
             self.added += 1
             return [gtsam.PriorFactorPose3(key(kf.id), pose3(T_meas), self._noise(n_b))]
         anchor = self._anchor
         if anchor is None or kf.id == 0:
-            self._anchor, self._travelled = (kf.id, n_b, d_b), 0.0
+            self._new_anchor(kf.id, n_b, d_b)
             return []
         a_id, n_a, d_a = anchor
-        T_ab = np.linalg.inv(graph.estimate(a_id)) @ np.asarray(graph.estimate(kf.id))
+        # the odometry alone since the anchor, not the graph's estimate: once ground factors
+        # pulled the estimate onto a plane, every later guess would agree with that plane
+        T_ab = self._odo_since_anchor
         T_meas, tilt, step = ground_corrected(T_ab, n_a, d_a, n_b, d_b)
-        if not self._gated(tilt, step):  # another ground (a ramp begins): start anew here
-            self._anchor, self._travelled = (kf.id, n_b, d_b), 0.0
+        lever = float(np.linalg.norm(T_ab[:3, 3] - (n_a @ T_ab[:3, 3]) * n_a))  # along the plane
+        ok = self._gated(tilt, step, lever)
+        self.history.append((kf.id, a_id, float(np.degrees(tilt)), step, lever, ok))
+        if not ok:  # another ground (a slope change): start anew
+            self._new_anchor(kf.id, n_b, d_b)
             return self._skip("gate")
         if self._travelled >= self.config.segment_length:
-            self._anchor, self._travelled = (kf.id, n_b, d_b), 0.0
+            self._new_anchor(kf.id, n_b, d_b)
         self.added += 1
-        return [gtsam.BetweenFactorPose3(key(a_id), key(kf.id), pose3(T_meas), self._noise(n_b))]
+        noise = self._noise(n_b, lever)
+        return [gtsam.BetweenFactorPose3(key(a_id), key(kf.id), pose3(T_meas), noise)]
