@@ -9,7 +9,8 @@ ranges in metres over a 180 deg fan in front of the robot, starting at -90 deg (
 robot's right); ``x y theta`` is the laser pose and ``odom_*`` the robot's wheel odometry
 (m, rad). A scan becomes a :class:`Scan` in the laser frame (x forward, y left, z = 0,
 ring 0): readings at the sensor's maximum range (no return) or below ``min_range`` are
-dropped. ``ROBOTLASER1`` lines (``start_angle fov resolution max_range ...``) are read the
+dropped; the wheel odometry rides along as ``Scan.odom``. ``ROBOTLASER1`` lines
+(``start_angle fov resolution max_range ...``) are read the
 same way when a log has no FLASER. Other lines (ODOM, PARAM, comments) are ignored. A
 damaged line costs that scan (a :class:`SkippedMessage`), not the run. Logs whose clock
 jumps (Intel: single stamps ~1 s ahead, so the next ones look 631 times out of order) keep
@@ -155,11 +156,13 @@ def records_to_scan(rec: LaserRecord, index: int, max_range: float) -> Scan:
     keep = np.isfinite(rec.ranges) & (rec.ranges > MIN_RANGE) & (rec.ranges < limit)
     r, a = rec.ranges[keep], rec.angles[keep]
     xyz = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r)])
+    odom = rec.odom if np.all(np.isfinite(rec.odom)) else None
     return Scan(
         stamp=rec.stamp,
         xyz=xyz,
         ring=np.zeros(len(r), dtype=np.int16),
         index=index,
+        odom=None if odom is None else odom.copy(),
     )
 
 

@@ -39,11 +39,12 @@ class GridConfig:
 
 
 def ray_cells(origin: np.ndarray, ends: np.ndarray, res: float) -> np.ndarray:
-    """World points sampled every half cell along each ray from ``origin`` (2,) to each end
-    point (N, 2), end excluded: the cells a ray crosses before its hit. (M, 2)."""
+    """World points sampled every cell along each ray from ``origin`` (2,) to each end point
+    (N, 2), end excluded: the cells a ray crosses before its hit (a diagonal step may skip
+    a corner cell). (M, 2)."""
     d = ends - origin
     length = np.linalg.norm(d, axis=1)
-    steps = np.maximum((length / (0.5 * res)).astype(np.int64), 0)
+    steps = np.maximum((length / res).astype(np.int64), 0)
     if steps.sum() == 0:
         return np.zeros((0, 2))
     ray = np.repeat(np.arange(len(ends)), steps)
@@ -113,12 +114,22 @@ class OccupancyGrid:
         new = view[flat].astype(np.int32) + int(round(value * LOG_ODDS_SCALE))
         view[flat] = np.clip(new, -lim, lim).astype(np.int16)
 
-    def add_scan(self, points: np.ndarray, origin: np.ndarray, weight: float = 1.0) -> None:
+    def add_scan(
+        self,
+        points: np.ndarray,
+        origin: np.ndarray,
+        weight: float = 1.0,
+        free_space: bool = True,
+    ) -> None:
         """Fuse one scan: ``points`` (N, 2) end points and ``origin`` (2,) sensor position,
-        world frame. ``weight`` -1 removes a scan fused before (a sliding submap)."""
+        world frame. ``weight`` -1 removes a scan fused before (a sliding submap);
+        ``free_space`` False updates the hit cells only (no ray tracing)."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         origin = np.asarray(origin, dtype=np.float64)[:2]
-        free = ray_cells(origin, points, self.cfg.resolution)
+        if free_space:
+            free = ray_cells(origin, points, self.cfg.resolution)
+        else:
+            free = np.zeros((0, 2))
         self._ensure(np.vstack([points, origin[None]]))
         hit_rc = self.cells_of(points)
         free_rc = self.cells_of(free)

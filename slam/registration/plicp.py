@@ -29,13 +29,18 @@ class PlicpConfig:
     """max_iterations; tolerance: stop when the update is below it (m and rad);
     max_distance (m): matches farther than this (after the prediction) are ignored;
     min_matches: fewest matches for a usable result; robust_floor (m): smallest Huber
-    threshold (the threshold is 3 robust sigmas of the residuals)."""
+    threshold (the threshold is 3 robust sigmas of the residuals); degeneracy_ratio:
+    directions constrained less than this share of the strongest keep the prediction;
+    point_matches: reference points on no line are matched point-to-point (False: only
+    line features count, as in the paper; isolated or sparse cells then pull nothing)."""
 
     max_iterations: int = 30
     tolerance: float = 1e-5
     max_distance: float = 0.5
     min_matches: int = 20
     robust_floor: float = 0.03
+    degeneracy_ratio: float = 0.02
+    point_matches: bool = True
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1 or not self.max_distance > 0:
@@ -46,7 +51,8 @@ class PlicpConfig:
 class PlicpResult:
     """pose (x, y, theta) mapping target points into the reference frame; rmse (m) of the
     final matches; matches: their count; iterations; converged; info: 3x3 information
-    (x, y, theta) = J^T J / sigma^2 of the final residuals."""
+    (x, y, theta) = J^T J / sigma^2 of the final residuals; degenerate: directions left at
+    the prediction (0 = fully constrained)."""
 
     pose: np.ndarray
     rmse: float
@@ -54,6 +60,7 @@ class PlicpResult:
     iterations: int
     converged: bool
     info: np.ndarray
+    degenerate: int = 0
 
 
 @dataclass
@@ -96,7 +103,7 @@ class LineReference:
 
 
 def _residuals(
-    moved: np.ndarray, ref: LineReference, max_distance: float
+    moved: np.ndarray, ref: LineReference, max_distance: float, point_matches: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Matches of ``moved`` target points: (point index, normal rows (K, 2), residuals (K,))
     stacked so that a line match gives one row (its normal) and a point match two."""
@@ -110,7 +117,7 @@ def _residuals(
     rows_i = [i[on_line]]
     rows_n = [normals]
     rows_q = [ref.anchors[j[on_line]]]
-    pts = i[~on_line]
+    pts = i[~on_line] if point_matches else i[:0]
     if len(pts):  # point-to-point: both axes
         q = ref.points[j[~on_line]]
         for axis in (np.array([1.0, 0.0]), np.array([0.0, 1.0])):
@@ -135,13 +142,13 @@ def plicp(
     cfg = cfg or PlicpConfig()
     target = np.asarray(target, dtype=np.float64).reshape(-1, 2)
     pose = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64).copy()
-    converged, it = False, 0
+    converged, it, degenerate = False, 0, 0
     if len(ref) == 0 or len(target) == 0:
         return PlicpResult(pose, np.inf, 0, 0, False, np.zeros((3, 3)))
     while it < cfg.max_iterations:
         it += 1
         moved = transform2d(pose, target)
-        idx, n, r, _ = _residuals(moved, ref, cfg.max_distance)
+        idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
         if len(np.unique(idx)) < cfg.min_matches:
             break
         # perturbation of the moved points about their centroid c (well conditioned far
@@ -149,8 +156,8 @@ def plicp(
         c = moved[idx].mean(axis=0)
         J = _jacobian(n, moved[idx] - c)
         w = _huber_weights(r, cfg.robust_floor)
-        Jw = J * w[:, None]
-        delta = -np.linalg.solve(Jw.T @ J + 1e-9 * np.eye(3), Jw.T @ r)
+        delta, weak = _constrained_step(J, w, r, moved[idx] - c, cfg.degeneracy_ratio)
+        degenerate = max(degenerate, weak)
         ct, st = np.cos(delta[2]), np.sin(delta[2])
         shift = c + delta[:2] - np.array([ct * c[0] - st * c[1], st * c[0] + ct * c[1]])
         pose = compose2d(np.array([shift[0], shift[1], delta[2]]), pose)
@@ -158,7 +165,9 @@ def plicp(
             converged = True
             break
     moved = transform2d(pose, target)
-    idx, n, r, _ = _residuals(moved, ref, cfg.max_distance)
+    idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
+    if len(idx) == 0:
+        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)), degenerate)
     matches = len(np.unique(idx))
     if matches == 0:
         return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)))
@@ -168,7 +177,26 @@ def plicp(
     J = _jacobian(n, moved[idx])  # about the world origin, then into the pose's tangent
     info = _world_to_body_info((J * w[:, None]).T @ J / sigma2, pose)
     pose[2] = float(wrap(pose[2]))
-    return PlicpResult(pose, rmse, matches, it, converged and matches >= cfg.min_matches, info)
+    ok = converged and matches >= cfg.min_matches
+    return PlicpResult(pose, rmse, matches, it, ok, info, degenerate)
+
+
+def _constrained_step(
+    J: np.ndarray, w: np.ndarray, r: np.ndarray, rel: np.ndarray, ratio: float
+) -> tuple[np.ndarray, int]:
+    """Weighted Gauss-Newton step that moves only along directions the matches constrain:
+    the rotation column is scaled by the points' RMS distance L (all three in metres),
+    and eigen-directions of J^T W J weaker than ``ratio`` x the strongest are left at the
+    prediction (a corridor seen without its ends: no slide along it). Returns the step
+    (dx, dy, d_theta) and the number of directions left out."""
+    length = max(float(np.sqrt(np.mean(np.sum(rel**2, axis=1)))), 1e-3)
+    Js = J * np.array([1.0, 1.0, 1.0 / length])
+    H = (Js * w[:, None]).T @ Js
+    g = (Js * w[:, None]).T @ r
+    lam, V = np.linalg.eigh(H)
+    keep = lam > ratio * max(lam[-1], 1e-12)
+    step = -V[:, keep] @ ((V[:, keep].T @ g) / lam[keep])
+    return step * np.array([1.0, 1.0, 1.0 / length]), int((~keep).sum())
 
 
 def _huber_weights(r: np.ndarray, floor: float) -> np.ndarray:

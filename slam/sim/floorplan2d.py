@@ -5,9 +5,9 @@ sees); the scanner sweeps 360 deg at 0.5 deg with Gaussian range noise, a maximu
 and dropouts. Pure numpy ray casting (every beam against every segment), fast enough for
 thousands of scans.
 
-Scenes: ``rooms`` - three rooms in a row (21 x 5 m, the paper's region-width test
+Scenes: ``rooms2d`` - three rooms in a row (21 x 5 m, the paper's region-width test
 environment, section 4.2) with doors, furniture boxes and a loop route through them;
-``office`` - a 10 x 10 m floor with 1.5 m corridors, workstation blocks and room
+``office2d`` - a 10 x 10 m floor with 1.5 m corridors, workstation blocks and room
 partitions (the paper's evaluation environment, section 5.1), driven twice around.
 """
 
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -93,7 +94,7 @@ def rooms() -> FloorPlan:
         [[2.0, -1.0], [2.0, 1.0], [3.5, 2.5], [17.5, 2.5], [19.0, 1.0], [19.0, -1.0],
          [2.0, -1.0]]
     )  # fmt: skip
-    return FloorPlan("rooms", np.array(segs, float), route, "three rooms 21 x 5 m", (21.0, 7.0))
+    return FloorPlan("rooms2d", np.array(segs, float), route, "three rooms 21 x 5 m", (21.0, 7.0))
 
 
 def office() -> FloorPlan:
@@ -114,10 +115,10 @@ def office() -> FloorPlan:
         [[0.75, 0.75], [9.25, 0.75], [9.25, 5.0], [7.0, 5.0], [9.25, 5.0], [9.25, 9.25],
          [0.75, 9.25], [0.75, 0.75]]
     )  # fmt: skip
-    return FloorPlan("office", np.array(segs, float), route, "office floor 10 x 10 m", (10, 10))
+    return FloorPlan("office2d", np.array(segs, float), route, "office floor 10 x 10 m", (10, 10))
 
 
-PLANS = {"rooms": rooms, "office": office}
+PLANS = {"rooms2d": rooms, "office2d": office}
 
 
 def cast(
@@ -181,7 +182,7 @@ class Sequence2D:
 
 
 def simulate2d(
-    plan: str | FloorPlan = "rooms",
+    plan: str | FloorPlan = "rooms2d",
     *,
     frames: int | None = None,
     speed: float = 0.5,
@@ -208,3 +209,73 @@ def simulate2d(
 def iter_points(seq: Sequence2D) -> Iterator[np.ndarray]:
     for k in range(len(seq.stamps)):
         yield seq.points(k)
+
+
+def wheel_odometry(
+    poses: np.ndarray,
+    seed: int = 0,
+    slip: float = 0.02,
+    yaw_slip: float = 0.02,
+    heading_deg_per_sqrt_m: float = 0.1,
+) -> np.ndarray:
+    """Wheel odometry (N, 3) of a ground-truth path: every step's travel scaled by a
+    random slip (``slip`` sigma, relative) and its turn by ``yaw_slip``, plus a heading
+    random walk of ``heading_deg_per_sqrt_m`` - the drift a real robot's encoders have."""
+    rng = np.random.default_rng(seed + 7)
+    out = np.zeros_like(poses)
+    out[0] = poses[0]
+    for k in range(1, len(poses)):
+        c, s = np.cos(poses[k - 1, 2]), np.sin(poses[k - 1, 2])
+        d = poses[k, :2] - poses[k - 1, :2]
+        local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+        dist = float(np.linalg.norm(local))
+        local = local * (1.0 + rng.normal(0.0, slip))
+        dth = (poses[k, 2] - poses[k - 1, 2]) * (1.0 + rng.normal(0.0, yaw_slip))
+        dth += rng.normal(0.0, np.radians(heading_deg_per_sqrt_m) * np.sqrt(max(dist, 1e-9)))
+        c, s = np.cos(out[k - 1, 2]), np.sin(out[k - 1, 2])
+        out[k, :2] = out[k - 1, :2] + [c * local[0] - s * local[1], s * local[0] + c * local[1]]
+        out[k, 2] = out[k - 1, 2] + dth
+    return out
+
+
+def write_carmen(seq: Sequence2D, path: str | Path, odometry: np.ndarray | None = None) -> Path:
+    """The sequence as a CARMEN log of ``ROBOTLASER1`` lines (start angle, fov, resolution,
+    max range, ranges; no return = max range; laser pose = ground truth, robot pose = the
+    wheel ``odometry`` (default :func:`wheel_odometry`), the format ``slam run`` reads like
+    the real Intel / FR079 logs."""
+    path = Path(path)
+    odo = wheel_odometry(seq.poses) if odometry is None else odometry
+    sc = seq.scanner
+    step = float(seq.angles[1] - seq.angles[0]) if len(seq.angles) > 1 else 0.0
+    lines = [f"# simulated by slam.sim.floorplan2d: {seq.plan.description}\n"]
+    for k, stamp in enumerate(seq.stamps):
+        r = np.where(np.isfinite(seq.ranges[k]), seq.ranges[k], sc.max_range)
+        x, y, th = seq.poses[k]
+        ox, oy, oth = odo[k]
+        ranges = " ".join(f"{v:.3f}" for v in r)
+        lines.append(
+            f"ROBOTLASER1 0 {seq.angles[0]:.9f} {np.radians(sc.fov_deg):.9f} {step:.9f} "
+            f"{sc.max_range:.3f} 0.01 0 {len(r)} {ranges} 0 {x:.6f} {y:.6f} {th:.6f} "
+            f"{ox:.6f} {oy:.6f} {oth:.6f} 0 0 0 0 0 {stamp:.6f} sim {stamp:.6f}\n"
+        )
+    path.write_text("".join(lines))
+    return path
+
+
+def write_sequence(
+    seq: Sequence2D, out: str | Path, odometry: np.ndarray | None = None
+) -> tuple[Path, Path]:
+    """``<out>/<plan>.clf`` and ``<out>/ground_truth.tum`` (planar poses, z = 0);
+    ``odometry``: the wheel odometry written in the log (default :func:`wheel_odometry`)."""
+    from slam.io.trajectory import write_tum
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = write_carmen(seq, out / f"{seq.plan.name}.clf", odometry)
+    T = np.repeat(np.eye(4)[None], len(seq.poses), axis=0)
+    c, s = np.cos(seq.poses[:, 2]), np.sin(seq.poses[:, 2])
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 0, 3], T[:, 1, 3] = seq.poses[:, 0], seq.poses[:, 1]
+    gt = out / "ground_truth.tum"
+    write_tum(gt, seq.stamps, T)
+    return log, gt

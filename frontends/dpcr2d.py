@@ -1,0 +1,301 @@
+"""DPCR-SLAM front end (paper 003, sections 3.1-3.4): dual registration of 2D laser scans.
+
+Per scan: (1) the first registration, improved PLICP of the scan against the line
+features of the submap (the last N scans, lines refreshed every K1 frames); the scan then
+joins the submap. (2) Every ``second_every`` frames the second registration, improved
+PLICP of the submap's obstacle cells against the line features of the regional map of the
+region the robot is in (refreshed every K2 frames); the correction moves the robot and the
+submap. A region's map fuses the scans taken in it (probabilistic grid); entering a region
+that already has a map registers against that map at once, which is what keeps the
+trajectory consistent when the robot comes back.
+
+The workspace is divided into regions of width S (eqs. (3)-(5), ``slam.mapping.grid2d``).
+A keyframe is emitted whenever the robot enters another region: its cloud is the obstacle
+map of the region just left (in the keyframe's frame), and its extras name the regions,
+so that the region-graph factor plugin (``slam.region_graph``) can link regional maps.
+Poses are planar: z = 0, roll = pitch = 0.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.errors import ConfigError
+from slam.features.lines2d import LineConfig, extract_lines
+from slam.mapping.grid2d import (
+    GridConfig,
+    OccupancyGrid,
+    RegionDivision,
+    compose2d,
+    inverse2d,
+    transform2d,
+    wrap,
+)
+from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
+from slam.types import Odometry, Scan
+
+
+def _submap_grid() -> GridConfig:
+    # hits only over a sliding window: a cell is an obstacle once two scans hit it
+    return GridConfig(hit=1.0, miss=-1.0, clamp=300.0, occupied=0.5)
+
+
+@dataclass
+class Dpcr2dConfig:
+    """DPCR-SLAM settings (paper 003).
+
+    submap_scans: N, the scans of the submap; k1 / k2: frames between line refreshes of
+    the submap / regional map (K2 > K1); region_width: S (m; the paper's study
+    recommends 4 m); second_every: frames between second registrations;
+    first_registration / second_registration: switch either off (the ablation; both off
+    = wheel odometry with maps); use_odometry: predict from the wheel odometry when the
+    input has it (``Scan.odom``; else constant velocity) - along a corridor whose ends
+    the laser does not see, nothing else says how far the robot went; max_range (m):
+    scan points beyond are dropped; min_points: fewest points of a usable scan;
+    max_step (m, deg): a registration moving the pose further than this from the
+    prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
+    grids (5 cm cells).
+    """
+
+    submap_scans: int = 20
+    k1: int = 5
+    k2: int = 20
+    region_width: float = 4.0
+    second_every: int = 5
+    first_registration: bool = True
+    second_registration: bool = True
+    use_odometry: bool = True
+    max_range: float = 30.0
+    min_points: int = 30
+    max_step: float = 0.5
+    max_step_deg: float = 20.0
+    submap_grid: GridConfig = field(default_factory=_submap_grid)
+    region_grid: GridConfig = field(default_factory=GridConfig)
+    lines: LineConfig = field(default_factory=LineConfig)
+    plicp: PlicpConfig = field(default_factory=PlicpConfig)
+    regional_plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
+
+    def __post_init__(self) -> None:
+        if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
+            raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
+        if not self.region_width > 0:
+            raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
+
+
+def pose2_to_matrix(p: np.ndarray) -> np.ndarray:
+    """4x4 T of the planar pose (x, y, theta)."""
+    c, s = np.cos(p[2]), np.sin(p[2])
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = p[:2]
+    return T
+
+
+def matrix_to_pose2(T: np.ndarray) -> np.ndarray:
+    """(x, y, theta) of a 4x4 T (its projection on the plane)."""
+    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
+
+
+@dataclass
+class _Region:
+    grid: OccupancyGrid
+    ref: LineReference | None = None
+    refreshed_at: int = -(10**9)
+
+
+class Dpcr2d:
+    """The DPCR-SLAM front end (plugin name ``dpcr2d``)."""
+
+    Config = Dpcr2dConfig
+
+    def __init__(self, cfg: Dpcr2dConfig | None = None):
+        self.cfg = cfg or Dpcr2dConfig()
+        self.division = RegionDivision.with_width(
+            self.cfg.region_width, self.cfg.region_grid.resolution
+        )
+        self.pose = np.zeros(3)
+        self.motion = np.zeros(3)  # last frame-to-frame motion (own frame)
+        self.frame = 0
+        self.window: deque[tuple[np.ndarray, np.ndarray]] = deque()  # (points, pose)
+        self.submap = OccupancyGrid(self.cfg.submap_grid)
+        self.submap_ref: LineReference | None = None
+        self.submap_refreshed_at = -(10**9)
+        self.regions: dict[int, _Region] = {}
+        self.region: int | None = None
+        self.pose_kf = np.zeros(3)
+        self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0}
+        self._odom: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ storage
+    def storage_bytes(self) -> dict[str, int]:
+        """Bytes of the stored grids: submap and regional maps (paper 003's metric)."""
+        return {
+            "submap": self.submap.nbytes,
+            "regional_maps": sum(r.grid.nbytes for r in self.regions.values()),
+        }
+
+    # ------------------------------------------------------------------ steps
+    def _points(self, scan: Scan) -> np.ndarray:
+        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
+        r = np.linalg.norm(xy, axis=1)
+        return xy[(r < self.cfg.max_range) & (r > 0.05)]
+
+    def _rebuild_submap(self) -> None:
+        self.submap = OccupancyGrid(self.cfg.submap_grid)
+        for pts, pose in self.window:
+            self.submap.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
+
+    def _refresh_submap_lines(self) -> None:
+        obstacles = self.submap.obstacles()
+        lines = extract_lines(obstacles, self.submap.cfg.resolution, self.cfg.lines)
+        self.submap_ref = LineReference.from_lines(lines) if len(obstacles) else None
+        self.submap_refreshed_at = self.frame
+
+    def _region_ref(self, region: _Region) -> LineReference | None:
+        if self.frame - region.refreshed_at >= self.cfg.k2 or region.ref is None:
+            obstacles = region.grid.obstacles()
+            if len(obstacles) < self.cfg.min_points:
+                return None
+            lines = extract_lines(obstacles, region.grid.cfg.resolution, self.cfg.lines)
+            region.ref = LineReference.from_lines(lines)
+            region.refreshed_at = self.frame
+        return region.ref
+
+    def _plausible(self, res: PlicpResult, start: np.ndarray) -> bool:
+        step = compose2d(inverse2d(start), res.pose)
+        return (
+            res.matches >= self.cfg.plicp.min_matches
+            and np.linalg.norm(step[:2]) <= self.cfg.max_step
+            and abs(np.degrees(step[2])) <= self.cfg.max_step_deg
+        )
+
+    def _second_registration(self, timings: dict) -> None:
+        """Submap obstacles -> regional map of the current region; moves robot + submap."""
+        region = self.regions.get(self.region) if self.region is not None else None
+        if region is None:
+            return
+        t = time.perf_counter()
+        ref = self._region_ref(region)
+        target = self.submap.obstacles()
+        if ref is None or len(target) < self.cfg.min_points:
+            return
+        res = plicp(target, ref, np.zeros(3), self.cfg.regional_plicp)
+        self.counts["second_registrations"] += 1
+        if not self._plausible(res, np.zeros(3)):
+            self.counts["second_rejected"] += 1
+            return
+        delta = res.pose  # world-frame correction of the submap
+        self.pose = compose2d(delta, self.pose)
+        self.window = deque((pts, compose2d(delta, pose)) for pts, pose in self.window)
+        self._rebuild_submap()
+        self._refresh_submap_lines()
+        timings["second_ms"] = (time.perf_counter() - t) * 1e3
+
+    def _fuse_region(self, pts: np.ndarray, pose: np.ndarray) -> None:
+        region = self.regions.get(self.region)
+        if region is None:  # entering a new region: its map starts from the submap
+            region = _Region(OccupancyGrid(self.cfg.region_grid))
+            for p, q in self.window:
+                region.grid.add_scan(transform2d(q, p), q[:2])
+            self.regions[self.region] = region
+            return
+        region.grid.add_scan(transform2d(pose, pts), pose[:2])
+
+    # ------------------------------------------------------------------ contract
+    def process(self, scan: Scan) -> Odometry:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        timings: dict = {}
+        extras: dict = {}
+        pts = self._points(scan)
+        odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
+        if self.frame and odom is not None and self._odom is not None and cfg.use_odometry:
+            # wheel odometry since the last scan, in the robot's frame (the prediction)
+            predicted = compose2d(self.pose, compose2d(inverse2d(self._odom), odom))
+            extras["prediction"] = "odometry"
+        else:
+            predicted = compose2d(self.pose, self.motion) if self.frame else self.pose
+        self._odom = odom
+        pose = predicted
+        if len(pts) < cfg.min_points:
+            extras["skipped"] = f"too few points ({len(pts)})"
+        elif cfg.first_registration and self.submap_ref is not None and len(self.submap_ref):
+            t = time.perf_counter()
+            res = plicp(pts, self.submap_ref, predicted, cfg.plicp)
+            timings["first_ms"] = (time.perf_counter() - t) * 1e3
+            extras.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
+            if self._plausible(res, predicted):
+                pose = res.pose
+            else:
+                self.counts["rejected"] += 1
+                extras["rejected"] = 1
+        previous = self.pose
+        self.pose = pose
+        t = time.perf_counter()
+        if len(pts) >= cfg.min_points:
+            self.window.append((pts, pose.copy()))
+            self.submap.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
+            if len(self.window) > cfg.submap_scans:
+                old_pts, old_pose = self.window.popleft()
+                self.submap.add_scan(
+                    transform2d(old_pose, old_pts), old_pose[:2], weight=-1.0, free_space=False
+                )
+        if self.frame - self.submap_refreshed_at >= cfg.k1 or self.submap_ref is None:
+            self._refresh_submap_lines()
+        timings["submap_ms"] = (time.perf_counter() - t) * 1e3
+
+        # regions: which one the robot is in; entering another one is a keyframe
+        region = int(self.division.region_of(self.pose[:2][None])[0])
+        entered = region != self.region
+        left = self.region
+        self.region = region
+        t = time.perf_counter()
+        if len(pts) >= cfg.min_points:
+            self._fuse_region(pts, self.pose)
+        due = self.frame % cfg.second_every == 0 or (entered and region in self.regions)
+        if cfg.second_registration and due:
+            self._second_registration(timings)
+        timings["region_ms"] = (time.perf_counter() - t) * 1e3
+
+        is_kf = self.frame == 0 or entered
+        T = pose2_to_matrix(self.pose)
+        relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
+        cloud = None
+        if is_kf:
+            extras.update(region=region, region_left=-1 if left is None else left)
+            if left is not None and left in self.regions:
+                obs = self.regions[left].grid.obstacles()
+                local = transform2d(inverse2d(self.pose), obs)
+                cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
+            self.pose_kf = self.pose.copy()
+        self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
+        self.motion[2] = float(wrap(self.motion[2]))
+        self.frame += 1
+        timings["total_ms"] = (time.perf_counter() - t0) * 1e3
+        extras.update(timings)
+        extras.update(regions=len(self.regions), **self.storage_bytes())
+        return Odometry(
+            stamp=scan.stamp,
+            pose=T,
+            is_keyframe=is_kf,
+            relative=relative,
+            info=_planar_information(relative),
+            cloud=cloud,
+            extras=extras,
+        )
+
+
+def _planar_information(relative: np.ndarray) -> np.ndarray:
+    """6x6 information (rotation first) of a planar motion: 2 cm + 2 % of the distance
+    and 0.5 deg + 2 % of the turn in the plane; z, roll and pitch held at 1 mm / 0.06 deg
+    (the 2D back end drops them)."""
+    dist = float(np.linalg.norm(relative[:2, 3]))
+    turn = abs(float(np.arctan2(relative[1, 0], relative[0, 0])))
+    s_t = 0.02 + 0.02 * dist
+    s_r = np.radians(0.5) + 0.02 * turn
+    sig = np.array([1e-3, 1e-3, s_r, s_t, s_t, 1e-3])
+    return np.diag(1.0 / sig**2)
