@@ -44,14 +44,15 @@ def runs(corridor):
 
 
 @pytest.mark.parametrize(
-    ("name", "cls", "max_rmse"), [("lego_loam", LegoLoam, 0.06), ("lego_lpb", LegoLpb, 0.05)]
+    ("name", "cls", "max_rmse"), [("lego_loam", LegoLoam, 0.04), ("lego_lpb", LegoLpb, 0.04)]
 )
 def test_tracks_100_corridor_frames(runs, name, cls, max_rmse):
-    """APE RMSE (origin-aligned) over 100 frames (9.9 m): measured 3.4 cm (lego_loam) and
-    2.8 cm (lego_lpb); floam 3.3 cm over the first 60 frames."""
+    """APE RMSE (origin-aligned, no SE3 fit) over 100 frames (10.8 m): measured 2.69 cm
+    (lego_loam) and 2.65 cm (lego_lpb), mostly height; floam 4.71 cm, improved_floam 0.80 cm
+    on the same frames."""
     fe, outs, err, dist, _ = runs[name]
     assert isinstance(fe, cls) and isinstance(fe, Frontend)
-    assert dist > 9.0
+    assert dist > 10.0
     rmse = float(np.sqrt(np.mean(err**2)))
     assert rmse < max_rmse, rmse
     assert err[-1] < 0.01 * dist, (err[-1], dist)
