@@ -21,7 +21,7 @@ from slam.sim.floorplan2d import Scanner2D, simulate2d
 
 @pytest.fixture(scope="module")
 def rooms_seq():
-    return simulate2d("rooms", frames=120, seed=1)
+    return simulate2d("rooms2d", frames=120, seed=1)
 
 
 def _map_of(seq, frames) -> OccupancyGrid:
@@ -128,7 +128,7 @@ def test_plicp_recovers_a_known_transform_against_a_grid_map(rooms_seq, k):
 def test_plicp_line_matches_beat_point_matches_with_coarse_cells():
     """Against 10 cm cells the line features (fitted lines) beat matching the cell centres
     themselves (PLICP without lines degenerates to point-to-point ICP on the cells)."""
-    seq = simulate2d("office", frames=80, seed=2, scanner=Scanner2D(sigma=0.02))
+    seq = simulate2d("office2d", frames=80, seed=2, scanner=Scanner2D(sigma=0.02))
     grid = OccupancyGrid(GridConfig(resolution=0.1))
     for k in range(30):
         grid.add_scan(transform2d(seq.poses[k], seq.points(k)), seq.poses[k][:2])
