@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-RING_BLOCK = 8  # consecutive points of a ring summarised by their range interval
+RING_BLOCK = 16  # ring points summarised by their range interval (8, 32: within 3 %)
 H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at 100 m range)
 
 
