@@ -69,6 +69,40 @@ def test_synthetic_walker_removed_poles_and_wall_kept():
     assert max(removed[1]) == 0.0 and max(removed[0]) == 0.0
 
 
+def _turning_run(cfg, yaw_error_deg):
+    """The sensor turns at 15 deg/s, the motion given lacks ``yaw_error_deg`` per scan (a
+    constant-velocity guess as the turn starts); fraction removed per tag from scan 5 on."""
+    rng = np.random.default_rng(4)
+    state, T_prev = None, None
+    removed = {0: [], 1: [], 2: []}
+    for k in range(20):
+        t = 0.1 * k
+        c, s_ = np.cos(np.radians(15 * t)), np.sin(np.radians(15 * t))
+        T_ws = np.eye(4)
+        T_ws[:3, :3] = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]
+        T_ws[:3, 3] = [1.0 * t, 0.0, 1.0]
+        pw, tag = _world(t, rng)
+        xyz = (pw - T_ws[:3, 3]) @ T_ws[:3, :3]
+        T_prev_curr = np.eye(4) if T_prev is None else np.linalg.inv(T_prev) @ T_ws
+        e = np.radians(yaw_error_deg)
+        err = np.eye(4)
+        err[:2, :2] = [[np.cos(e), -np.sin(e)], [np.sin(e), np.cos(e)]]
+        keep, state = remove_dynamic(xyz, state, T_prev_curr @ err, cfg)
+        if k >= 5:
+            for tg in removed:
+                removed[tg].append((~keep[tag == tg]).mean())
+        T_prev = T_ws
+    return {tg: float(np.mean(v)) for tg, v in removed.items()}
+
+
+def test_an_odometry_yaw_error_moves_no_static_cluster():
+    bad = _turning_run(DynamicsConfig(refine_motion=False), 1.5)
+    good = _turning_run(DynamicsConfig(), 1.5)
+    print(f"1.5 deg yaw error per scan: removed without refinement {bad}, with {good}")
+    assert bad[1] > 0.5  # the poles 8-14 m away seem to move 0.2-0.4 m per scan
+    assert good[0] == 0.0 and good[1] == 0.0 and good[2] > 0.9
+
+
 def test_first_scan_and_bare_centroids_and_errors():
     rng = np.random.default_rng(1)
     xyz, _ = _world(0.0, rng)

@@ -40,7 +40,9 @@ class DynamicsConfig:
     match_radius (m): farther previous centroids do not match (10 m/s at 10 Hz).
     track_window (scans): the memory of a track's start point.
     max_extent (m): clusters wider than this are structure, never removed.
-    max_count_ratio: matched clusters differ at most this much in point count."""
+    max_count_ratio: matched clusters differ at most this much in point count.
+    refine_motion: correct T_prev_curr (yaw and horizontal shift) by the motion of the
+    static majority of the clusters, so that an odometry guess's error moves no cluster."""
 
     enabled: bool = True
     eps: float = 0.5
@@ -54,6 +56,7 @@ class DynamicsConfig:
     max_extent: float = 5.0
     track_window: int = 10
     max_count_ratio: float = 2.0
+    refine_motion: bool = True
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
@@ -139,6 +142,51 @@ def cluster_stats(
 STATE_COLUMNS = ("x", "y", "z", "count", "anchor_x", "anchor_y", "anchor_z", "age")
 
 
+def _static_alignment(
+    prev_c: np.ndarray,
+    centroids: np.ndarray,
+    counts: np.ndarray,
+    extent: np.ndarray,
+    basis: np.ndarray,
+    cfg: DynamicsConfig,
+) -> np.ndarray:
+    """4x4 horizontal rigid correction (rotation about up, shift) that best maps the
+    previous centroids onto their nearest current ones, over the static majority (trimmed
+    least squares, weights = point counts). An error of the motion given (a front end's
+    constant-velocity guess in a turn: 1 deg = 0.17 m at 10 m) would otherwise move every
+    static cluster; the world's static majority defines the frame instead."""
+    A = np.eye(4)
+    h_prev, h_curr = prev_c @ basis.T, centroids @ basis.T
+    dist, j = cKDTree(h_prev).query(h_curr, k=1)
+    use = (dist <= cfg.match_radius) & (extent <= 4 * cfg.max_extent)
+    if use.sum() < 4:
+        return A
+    p, q, w = h_prev[j[use]], h_curr[use], counts[use]
+    keep = np.ones(len(p), dtype=bool)
+    for _ in range(3):  # trimmed: the movers and mismatches drop out
+        ww = w * keep
+        if ww.sum() <= 0 or keep.sum() < 4:
+            return A
+        mp, mq = (ww @ p) / ww.sum(), (ww @ q) / ww.sum()
+        H = ((p - mp) * ww[:, None]).T @ (q - mq)
+        U, _, Vt = np.linalg.svd(H)
+        R2 = Vt.T @ U.T
+        if np.linalg.det(R2) < 0:
+            Vt[-1] *= -1
+            R2 = Vt.T @ U.T
+        t2 = mq - R2 @ mp
+        res = np.linalg.norm(p @ R2.T + t2 - q, axis=1)
+        keep = res <= max(cfg.motion_threshold, 2.0 * float(np.median(res)))
+    # lift the 2D transform (in the horizontal basis) to 3D: rotation about up
+    up = np.cross(basis[0], basis[1])
+    M = np.vstack([basis, up])  # rows: horizontal axes, up
+    R3 = np.eye(3)
+    R3[:2, :2] = R2
+    A[:3, :3] = M.T @ R3 @ M
+    A[:3, 3] = M.T @ np.r_[t2, 0.0]
+    return A
+
+
 def remove_dynamic(
     xyz_nonground: np.ndarray,
     prev_centroids: np.ndarray | None,
@@ -186,6 +234,9 @@ def remove_dynamic(
     R, t = T_curr_prev[:3, :3], T_curr_prev[:3, 3]
     prev_c = prev[:, :3] @ R.T + t
     prev_anchor = prev[:, 4:7] @ R.T + t
+    if cfg.refine_motion:
+        A = _static_alignment(prev_c, centroids, counts, extent, basis, cfg)
+        prev_c, prev_anchor = prev_c @ A[:3, :3].T + A[:3, 3], prev_anchor @ A[:3, :3].T + A[:3, 3]
     dist, j = cKDTree(prev_c @ basis.T).query(centroids @ basis.T, k=1)
     matched = dist <= cfg.match_radius
     prev_count = prev[j, 3]
