@@ -138,6 +138,16 @@ class Dpcr2d:
             "regional_maps": sum(r.grid.nbytes for r in self.regions.values()),
         }
 
+    def global_grid(self, corrections: dict[int, np.ndarray] | None = None) -> OccupancyGrid:
+        """The global map: the regional maps fused probabilistically (log-odds added, paper
+        003 section 3.5 step 6), each moved by its region's correction (x, y, theta) from the
+        region graph (world frame: optimised pose o odometry pose^-1); none = as built."""
+        out = OccupancyGrid(self.cfg.region_grid)
+        for region_id, region in self.regions.items():
+            T = None if corrections is None else corrections.get(region_id)
+            out.add_grid(region.grid, T)
+        return out
+
     # ------------------------------------------------------------------ steps
     def _points(self, scan: Scan) -> np.ndarray:
         xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)

@@ -15,6 +15,7 @@ from frontends.dpcr2d import Dpcr2d, matrix_to_pose2
 from slam.cli import main
 from slam.factors import key
 from slam.io.carmen import CarmenSource
+from slam.io.grid_map import read_pgm
 from slam.sim.floorplan2d import simulate2d, wheel_odometry, write_sequence
 
 
@@ -97,6 +98,13 @@ def test_region_edges_cut_the_drift_of_wheel_odometry(rooms_log, tmp_path):
     assert graph["median"] < 0.6 * odo["median"], (odo, graph)
     metrics = json.loads((tmp_path / "graph" / "metrics.json").read_text())
     assert metrics["factors"]["region_edges"] > 10
+    # the global map in the map_server format, fused from the regional maps
+    img = read_pgm(tmp_path / "graph" / "map.pgm")
+    meta = (tmp_path / "graph" / "map.yaml").read_text()
+    assert "resolution: 0.050000" in meta and "image: map.pgm" in meta
+    occupied, free = (img == 0).sum(), (img == 254).sum()
+    # the rooms' walls (~ 95 m of wall, cells 5 cm, about 2 cells thick) and their floor
+    assert 2000 < occupied < 8000 and free > 10 * occupied
 
 
 def test_dpcr_runs_on_the_real_intel_log(tmp_path):

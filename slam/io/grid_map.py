@@ -1,0 +1,92 @@
+"""2D occupancy grids written in the ROS ``map_server`` format: ``map.pgm`` (8-bit, row 0
+at the top: occupied 0, free 254, unknown 205) and ``map.yaml`` (image, resolution in m
+per cell, origin = world position of the lower-left cell's corner, thresholds)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from slam.mapping.grid2d import OccupancyGrid
+
+OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
+
+
+def map_image(grid: OccupancyGrid) -> np.ndarray:
+    """(rows, cols) uint8 image of the grid, row 0 at the top (largest y)."""
+    p = grid.probability()
+    img = np.full(p.shape, UNKNOWN, dtype=np.uint8)
+    img[p > OCCUPIED_THRESH] = OCCUPIED
+    img[p < FREE_THRESH] = FREE
+    return img[::-1].copy()
+
+
+def write_map_server(grid: OccupancyGrid, out: str | Path, name: str = "map") -> list[Path]:
+    """``<out>/<name>.pgm`` and ``<out>/<name>.yaml``; returns both paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    img = map_image(grid)
+    pgm, yaml = out / f"{name}.pgm", out / f"{name}.yaml"
+    rows, cols = img.shape
+    pgm.write_bytes(f"P5\n{cols} {rows}\n255\n".encode() + img.tobytes())
+    ox, oy = (float(v) for v in grid.origin)
+    yaml.write_text(
+        f"image: {pgm.name}\n"
+        f"resolution: {grid.cfg.resolution:.6f}\n"
+        f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {OCCUPIED_THRESH}\n"
+        f"free_thresh: {FREE_THRESH}\n"
+    )
+    return [pgm, yaml]
+
+
+def read_pgm(path: str | Path) -> np.ndarray:
+    """The image of a binary PGM (P5, 8-bit) as (rows, cols) uint8."""
+    data = Path(path).read_bytes()
+    parts = data.split(maxsplit=4)
+    if parts[0] != b"P5":
+        raise ValueError(f"{path}: not a binary PGM")
+    cols, rows, _ = int(parts[1]), int(parts[2]), int(parts[3])
+    return np.frombuffer(parts[4][: rows * cols], dtype=np.uint8).reshape(rows, cols)
+
+
+def _pose2(T: np.ndarray) -> np.ndarray:
+    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
+
+
+def region_corrections(pipeline) -> dict[int, np.ndarray]:
+    """World-frame correction (x, y, theta) of each regional map: optimised pose o
+    odometry pose^-1 of the keyframe that closed it (its ``region_left``); the region the
+    run ended in takes the last keyframe's."""
+    from slam.mapping.grid2d import compose2d, inverse2d
+
+    st = pipeline.state
+    out: dict[int, np.ndarray] = {}
+    last = None
+    for kf in st.keyframes:
+        if kf.id not in st.estimates:
+            continue
+        corr = compose2d(_pose2(st.estimates[kf.id]), inverse2d(_pose2(kf.pose_odom)))
+        region = int(kf.extras.get("region_left", -1))
+        if region >= 0:
+            out[region] = corr
+        last = corr
+    if last is not None:
+        for region in getattr(pipeline.frontend, "regions", {}):
+            out.setdefault(region, last)
+    return out
+
+
+def write_region_map(pipeline, out: str | Path) -> list[Path]:
+    """``map.pgm`` + ``map.yaml`` of a 2D run whose front end keeps regional maps
+    (``global_grid``): the regional maps fused at their optimised placement. [] otherwise."""
+    frontend = pipeline.frontend
+    if not hasattr(frontend, "global_grid") or not pipeline.state.keyframes:
+        return []
+    grid = frontend.global_grid(region_corrections(pipeline))
+    if grid.data.size == 0:
+        return []
+    return write_map_server(grid, out)
