@@ -55,7 +55,9 @@ class GroundFactorConfig(FactorConfig):
     gate_tilt_deg: a keyframe whose plane disagrees more with the current pose guess is not
     constrained (slope change, kerb, wrong plane); in chain mode the tilt's height error
     over the distance to the anchor counts against gate_height (curved terrain). max_rmse
-    (m): planes fitted with larger residuals are not used. Defaults are cautious: planes of
+    (m): planes fitted with larger residuals are not used; rmse_ref (m): a fitted plane's
+    sigmas grow by its rmse / rmse_ref above 1 (a sweep distorted by the sensor's wobble,
+    uneven ground). Defaults are cautious: planes of
     real 16-beam scans scatter by 0.3-1 deg (beam calibration, kerbs, the car pitching),
     and hills bend within 10 m; on a known flat floor 0.2 deg and 20 m correct more.
     up, max_tilt_deg, min_depth, max_range, inlier_band, min_inliers: the RANSAC ground fit
@@ -68,6 +70,7 @@ class GroundFactorConfig(FactorConfig):
     gate_height: float = 0.1
     gate_tilt_deg: float = 0.7
     max_rmse: float = 0.06
+    rmse_ref: float = 0.015
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
     max_tilt_deg: float = 15.0
     min_depth: float = 0.3
@@ -177,6 +180,7 @@ class GroundFactorPlugin:
         self._travelled = 0.0  # m since the anchor keyframe
         self._odo_since_anchor = np.eye(4)  # T_anchor_current from the odometry alone
         self._world: tuple[np.ndarray, float] | None = None  # global mode: the ground
+        self._roughness = 1.0  # the current plane's sigma scale (fit rmse / rmse_ref)
         self.added = 0
         self.skipped: dict[str, int] = {}
         # per keyframe with a plane: (kf id, reference id (-1: world), tilt deg, step m,
@@ -192,6 +196,7 @@ class GroundFactorPlugin:
 
     def plane(self, kf: Keyframe) -> tuple[np.ndarray, float] | None:
         """The keyframe's ground (n, d) in its sensor frame, or None (counted in skipped)."""
+        self._roughness = 1.0
         extras = kf.extras or {}
         given = extras.get("ground_plane")
         if given is None and all(k in extras for k in GROUND_EXTRAS):
@@ -210,14 +215,16 @@ class GroundFactorPlugin:
         if fit.rmse > self.config.max_rmse:
             self._skip("rough ground")
             return None
+        self._roughness = max(1.0, fit.rmse / self.config.rmse_ref)
         return fit.normal, fit.d
 
     def _noise(self, n_b: np.ndarray, lever: float = 0.0) -> gtsam.noiseModel.Base:
         """Noise of a plane measurement; the height ``lever`` m away from where the plane was
         measured is uncertain by the normal's error times the lever too."""
         c = self.config
-        tilt = np.radians(c.sigma_tilt_deg)
-        info = ground_information(n_b, tilt, float(np.hypot(c.sigma_height, lever * tilt)))
+        tilt = np.radians(c.sigma_tilt_deg) * self._roughness
+        height = c.sigma_height * self._roughness
+        info = ground_information(n_b, tilt, float(np.hypot(height, lever * tilt)))
         return robust_noise(gtsam.noiseModel.Gaussian.Information(info), c.robust, c.robust_param)
 
     def _gated(self, tilt: float, step: float, lever: float = 0.0) -> bool:
