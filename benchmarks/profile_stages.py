@@ -31,6 +31,7 @@ from bench_frontends import small_gicp_odometry  # noqa: E402
 from slam.config import load_config  # noqa: E402
 from slam.io.folders import cloud_files, read_cloud  # noqa: E402
 from slam.io.source import open_source  # noqa: E402
+from slam.outputs import metrics  # noqa: E402
 from slam.pipeline import Pipeline  # noqa: E402
 from slam.sim.cache import ensure_sequence  # noqa: E402
 from slam.types import Scan  # noqa: E402
@@ -75,6 +76,11 @@ def profile(scans: list[Scan], config: str) -> dict[str, float]:
         for key, value in (stats() if callable(stats) else {}).items():
             if key.endswith("_ms"):
                 row[f"{source.name} {key[:-3]}"] = float(value)
+    m = metrics(pipe)
+    for name in ("frame_ms_first100", "frame_ms_last100", "frame_ms_max", "backend_ms_last100",
+                 "backend_ms_max", "peak_memory_mb"):  # fmt: skip
+        if m.get(name) is not None:
+            row[name] = float(m[name])
     row["pipeline total (per frame)"] = 1e3 * wall / n
     row["frames/s"] = n / wall
     row["keyframes"] = float(len(state.keyframes))
