@@ -87,11 +87,11 @@ def test_remembered_neighbourhoods_and_the_voxel_hash_change_nothing(monkeypatch
     monkeypatch.setattr(fi._Neighbourhoods, "__call__", forgetful)
     fresh = feature_icp_align(*src, FeatureTarget(e_map), FeatureTarget(p_map), np.eye(4), cfg)
     orig = fi.solve_weighted
-    monkeypatch.setattr(fi, "solve_weighted", lambda *a, **k: orig(*a, **k, reference=True))
-    numpy_solver = feature_icp_align(
+    monkeypatch.setattr(fi, "solve_weighted", lambda *a, **k: orig(*a, **{**k, "reference": False}))
+    kernel_solver = feature_icp_align(
         *src, FeatureTarget(e_map), FeatureTarget(p_map), np.eye(4), cfg
     )
     assert remembered.iterations == fresh.iterations > 1
     np.testing.assert_array_equal(remembered.T_target_source, fresh.T_target_source)
-    for other in (on_hash, numpy_solver):
+    for other in (on_hash, kernel_solver):
         np.testing.assert_allclose(other.T_target_source, fresh.T_target_source, atol=1e-9)

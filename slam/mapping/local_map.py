@@ -16,8 +16,9 @@ compacts the arrays and rebuilds the hash (O(map), once per ``prune_distance``).
 ascending, missing neighbours as distance inf and index ``len(map)``), so the map itself can
 stand in for a KD-tree (``GicpTarget(..., tree=map)``). It is exact: it scans the voxel
 shells around a query outwards until the k-th neighbour found is closer than every point
-of the unscanned voxels (or than ``distance_upper_bound``), and after ``max_shells`` shells
-falls back to a brute-force pass for that query alone (an isolated point).
+of the unscanned voxels (or than ``distance_upper_bound``); a query not settled within
+``MAX_SHELLS`` shells (an isolated point: sparse far returns) is answered by the cached
+KD-tree of the map (built at most once per map version, only when such a query comes).
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ from slam.errors import ConfigError, InputError
 
 _OFFSET = np.int64(1 << 20)  # voxel coordinates are packed into 21 bits each
 _EMPTY = np.int64(-1)
-MAX_SHELLS = 4  # voxel shells scanned before the brute-force fallback of one query (or as
-# many as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
-MAX_BOUNDED_SHELLS = 12
+MAX_SHELLS = 2  # voxel shells scanned before a query falls back to the KD-tree (or as many
+# as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
+MAX_BOUNDED_SHELLS = 4
 
 
 @dataclass
@@ -143,7 +144,9 @@ def _gap(d, f0, f1, voxel):
 
 
 @njit(cache=True)
-def _query_kernel(q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, pts, n, od, oi):
+def _query_kernel(
+    q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, pts, n, od, oi, unresolved
+):
     """Exact k-NN (squared distances) of each query among the n map points; see ``query``.
     Shell by shell outwards from the query's voxel; a voxel whose box is farther than the
     current k-th neighbour (or the bound) is not opened."""
@@ -208,17 +211,8 @@ def _query_kernel(q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots,
             if bd[k - 1] <= r * r or max_d2 <= r * r:
                 done = True
                 break
-        if not done:  # an isolated query: brute force over the map
-            for m in range(k):
-                bd[m] = np.inf
-                bi[m] = n
-            for j in range(n):
-                ex = pts[j, 0] - qx
-                ey = pts[j, 1] - qy
-                ez = pts[j, 2] - qz
-                d2 = ex * ex + ey * ey + ez * ez
-                if d2 < bd[k - 1] and d2 <= max_d2:
-                    _push(bd, bi, d2, j)
+        if not done:  # an isolated query: answered by the caller (KD-tree)
+            unresolved[i] = True
 
 
 # --------------------------------------------------------------------------- the map
@@ -392,6 +386,7 @@ class VoxelHashMap:
             raise InputError(f"k must be >= 1, got {k}")
         od = np.empty((len(x), k))
         oi = np.empty((len(x), k), dtype=np.int64)
+        unresolved = np.zeros(len(x), dtype=np.bool_)
         bound = float(distance_upper_bound)
         max_d2 = bound * bound if np.isfinite(bound) else np.inf
         shells = MAX_SHELLS
@@ -412,8 +407,14 @@ class VoxelHashMap:
             self._n,
             od,
             oi,
+            unresolved,
         )
         d = np.sqrt(od)
+        if unresolved.any():  # isolated points (sparse far returns): the exact KD-tree
+            rows = np.flatnonzero(unresolved)
+            dt, jt = self.tree().query(x[rows], k=k, distance_upper_bound=bound)
+            d[rows] = np.reshape(dt, (len(rows), k))
+            oi[rows] = np.reshape(jt, (len(rows), k))
         if k == 1:
             return d[:, 0], oi[:, 0]
         return d, oi
