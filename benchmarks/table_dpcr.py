@@ -51,13 +51,16 @@ def scene(out: Path, plan: str = "rooms2d", laps: float = 2.0) -> tuple[Path, Pa
     return write_sequence(seq, out / plan, odo)
 
 
-def map_consistency(log: Path, run_dir: Path, max_frames: int | None, every: int = 2) -> dict:
-    """Wall thickness of all (every ``every``-th) scans fused at ``trajectory.tum``."""
+def map_consistency(
+    log: Path, run_dir: Path, max_frames: int | None, every: int = 2, first: int | None = None
+) -> dict:
+    """Wall thickness of all (every ``every``-th) scans fused at ``trajectory.tum``;
+    ``first``: only the first scans (the floor: sensor noise and clutter, no revisits)."""
     stamps, T = read_trajectory(run_dir / "trajectory.tum")
     by_stamp = {round(float(s), 4): k for k, s in enumerate(stamps)}
     poses, scans = [], []
     for n, scan in enumerate(CarmenSource(log)):
-        if max_frames is not None and n >= max_frames:
+        if (max_frames is not None and n >= max_frames) or (first is not None and n >= first):
             break
         k = by_stamp.get(round(float(scan.stamp), 4))
         if k is None or n % every:
@@ -111,6 +114,8 @@ def run(
         row.update(ape_rmse=ev.ape_trans["rmse"], loc_err_ave=loc_err_ave(ev.ape_errors))
     if consistency:
         row.update(map_consistency(log, out, max_frames))
+        floor = map_consistency(log, out, max_frames, every=1, first=50)
+        row["wall_floor_m"] = floor["wall_median_m"]
     return row
 
 
@@ -197,6 +202,7 @@ def main(argv: list[str] | None = None) -> None:
                     ("wall_median_m", "wall median (m)", ".3f"),
                     ("wall_p90_m", "wall p90 (m)", ".3f"),
                     ("wall_doubled", "walls > 15 cm", ".2f"),
+                    ("wall_floor_m", "first 50 scans (m)", ".3f"),
                     ("ape_rmse", "APE RMSE (m)", ".3f"),
                     ("loc_err_ave", "LocErr_ave (m)", ".3f"),
                 ],
