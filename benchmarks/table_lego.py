@@ -136,6 +136,14 @@ def z_errors(res) -> dict:
 REUSE_KEYS = ("scene", "bag", "gt", "frames", "config", "overrides")
 
 
+def _same(a, b) -> bool:
+    """Equal, overrides compared without the ground plugin's import path (the same
+    plugin by entry-point name or by path)."""
+    if isinstance(a, list) and isinstance(b, list):
+        a, b = ([o for o in x if not o.startswith("factors.ground.plugin=")] for x in (a, b))
+    return a == b
+
+
 def run_job(job: dict) -> dict:
     """One config (+ overrides) on one sequence, in its own process; with ``reuse`` the
     row of an earlier identical run in the same folder (``row.json``) is returned."""
@@ -145,7 +153,7 @@ def run_job(job: dict) -> dict:
     saved = Path(job["out"]) / "row.json"
     if job.get("reuse") and saved.is_file():
         row = json.loads(saved.read_text())
-        if all(row.get(k) == job[k] for k in REUSE_KEYS) and "error" not in row:
+        if all(_same(row.get(k), job[k]) for k in REUSE_KEYS) and "error" not in row:
             keep = {k: job[k] for k in ("index", "label", "group", "out") if k in job}
             return {**row, **keep, "reused": True}
     if job.get("tabulate_only"):
