@@ -331,8 +331,11 @@ def test_cache_key_covers_only_the_scene_own_sources(tmp_path, monkeypatch):
     gone = tmp_path / "extra-2-0-0000000000"
     gone.mkdir()
     (gone / "cache.json").write_text('{"digest": "old", "scene": "extra"}')
+    unknown = tmp_path / "newer-2-0-0000000000"  # a scene of newer code running beside
+    unknown.mkdir()
+    (unknown / "cache.json").write_text('{"digest": "x", "scene": "not_registered_here"}')
     assert cache.prune_stale(tmp_path) == [gone]
-    assert a.bag.exists()
+    assert a.bag.exists() and unknown.exists()
     # a change to a source the scene uses changes its key
     monkeypatch.setattr(registry, "CORE_SOURCES", registry.CORE_SOURCES + ("urban.py",))
     assert cache.sequence_key("corridor", frames=2, fmt="ros1", seed=0, pedestrians=False) != key

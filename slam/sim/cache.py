@@ -52,8 +52,9 @@ def _code_digest(scene: str) -> str:
 
 def prune_stale(root: Path) -> list[Path]:
     """Remove cached sequences made by another simulator version or another source of
-    their own scene (or of a scene that no longer exists); returns them. Sequences of
-    other scenes whose sources did not change are kept."""
+    their own scene, and those of the old cache layout (no scene in the stamp); returns
+    them. Sequences of other scenes whose sources did not change are kept, and so are
+    those of scenes this process does not know (written by newer code running beside)."""
     removed = []
     for folder in root.iterdir():
         stamp = folder / _STAMP_NAME
@@ -64,7 +65,9 @@ def prune_stale(root: Path) -> list[Path]:
         except (OSError, ValueError):
             meta = {}
         scene = meta.get("scene")
-        if scene not in SCENES or meta.get("digest") != _code_digest(scene):
+        if scene is not None and scene not in SCENES:
+            continue  # a scene registered by newer code than this process runs: not ours
+        if scene is None or meta.get("digest") != _code_digest(scene):
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
     return removed
