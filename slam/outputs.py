@@ -154,6 +154,10 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         # each factor plugin's own counts and timings (``stats()``, e.g. the loop plugin's
         # detect/verify ms), by the name it was configured under
         "factor_stats": plugin_stats(pipeline),
+        # the back end's own (e.g. the region graph's optimisations and their ms)
+        "backend_stats": (
+            pipeline.backend.stats() if callable(getattr(pipeline.backend, "stats", None)) else {}
+        ),
         **(extra or {}),
     }
 

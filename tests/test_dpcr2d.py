@@ -98,6 +98,7 @@ def test_region_edges_cut_the_drift_of_wheel_odometry(rooms_log, tmp_path):
     assert graph["median"] < 0.6 * odo["median"], (odo, graph)
     metrics = json.loads((tmp_path / "graph" / "metrics.json").read_text())
     assert metrics["factors"]["region_edges"] > 10
+    assert metrics["backend_stats"]["optimizations"] >= metrics["keyframes"] - 1
     # the global map in the map_server format, fused from the regional maps
     img = read_pgm(tmp_path / "graph" / "map.pgm")
     meta = (tmp_path / "graph" / "map.yaml").read_text()
