@@ -4,8 +4,13 @@ and the certified window search. Equal to the KD-tree k-NN; tested in tests/test
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+# the parallel window search's threading layer: OpenMP or numba's own workqueue before TBB
+# (the TBB of the wheels we depend on is older than numba accepts and it warns on first use)
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 RING_BLOCK = 16  # ring points summarised by their range interval (8, 32: within 3 %)
 H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at 100 m range)
@@ -275,7 +280,7 @@ def _block_bound2(h: float, r2: float, rp: float, rmin: float, rmax: float) -> f
     return max(r2 + r * r - 2.0 * rp * r * c, 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def window_knn(
     xyz: np.ndarray,
     rng: np.ndarray,
@@ -336,11 +341,10 @@ def window_knn(
             ib = bstart[j] + u // B
             rmin[ib] = min(rmin[ib], rng[a + u])
             rmax[ib] = max(rmax[ib], rng[a + u])
-    bd = np.empty(k)
-    bi = np.empty(k, dtype=np.int64)
-    cursor = np.empty(n_rings, dtype=np.int64)  # per ring: first point at azimuth >= current
-    for g in range(n_rings):  # serial: parallel=True measured slower on the 2 shared cores
-        cursor[:] = -1
+    for g in prange(n_rings):  # rings are independent: one thread per ring at a time
+        bd = np.empty(k)
+        bi = np.empty(k, dtype=np.int64)
+        cursor = np.full(n_rings, -1, dtype=np.int64)  # per ring: first point at azimuth >= current
         g_a = start[g]
         g_cnt = start[g + 1] - g_a
         for s in range(g_a, g_a + g_cnt):
