@@ -196,7 +196,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from slam.sim.floorplan2d import PLANS, simulate2d, write_sequence
     from slam.sim.simulate import simulate
+
+    if args.scene in PLANS:  # 2D laser in a floor plan: a CARMEN log + ground truth
+        seq = simulate2d(args.scene, frames=args.frames, seed=args.seed)
+        log, gt = write_sequence(seq, Path(args.out))
+        _eprint(f"wrote {len(seq.stamps)} 2D laser scans to {log} and ground truth to {gt}")
+        return EXIT_OK
 
     bar = tqdm(
         unit="scan",
@@ -392,7 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
         "scene",
         help="corridor | plaza (ideal sensor) | park (realistic sensor: calibration errors, "
         "mixed pixels, porous trees, terrain) | urban (car-speed city drive, 1.2 km, up to "
-        "15 m/s, stops, junctions, streets driven both ways; realistic sensor)",
+        "15 m/s, stops, junctions, streets driven both ways; realistic sensor) | building | "
+        "building_loop (paper 001's floor under construction, 1.27 km S-route / 0.41 km "
+        "loop) | rooms2d | office2d (2D laser, 360 deg, in floor plans: a CARMEN log)",
     )
     q.add_argument(
         "--sensor",

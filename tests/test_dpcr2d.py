@@ -119,3 +119,15 @@ def test_dpcr_runs_on_the_real_intel_log(tmp_path):
     assert steps.max() < 0.5  # no jump: the Intel robot moves < 0.5 m between scans
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 150 and metrics["keyframes"] >= 2
+
+
+def test_simulate_a_2d_floor_plan_and_run_it(tmp_path):
+    assert main(["simulate", "office2d", str(tmp_path / "sim"), "--frames", "60"]) == 0
+    log = tmp_path / "sim" / "office2d.clf"
+    gt = tmp_path / "sim" / "ground_truth.tum"
+    assert len(np.loadtxt(gt)) == 60
+    out = tmp_path / "run"
+    assert main(["run", str(log), "--config", "dpcr2d", "--gt", str(gt), "--out", str(out),
+                 "--quiet"]) == 0  # fmt: skip
+    assert _ape(out)["rmse"] < 0.03
+    assert (out / "map.pgm").is_file() and (out / "map.yaml").is_file()
