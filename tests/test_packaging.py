@@ -37,5 +37,6 @@ def test_builtin_recipes_load_from_the_package():
 
 
 def test_unknown_recipe_lists_the_builtin_ones():
-    with pytest.raises(ConfigError, match="built-in configs: .*floam, floam_loop, .*improved_floam, "):
+    listed = "built-in configs: .*floam, floam_loop, .*improved_floam, "
+    with pytest.raises(ConfigError, match=listed):
         load_config("no_such_recipe")
