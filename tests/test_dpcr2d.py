@@ -131,3 +131,31 @@ def test_simulate_a_2d_floor_plan_and_run_it(tmp_path):
                  "--quiet"]) == 0  # fmt: skip
     assert _ape(out)["rmse"] < 0.03
     assert (out / "map.pgm").is_file() and (out / "map.yaml").is_file()
+
+
+def test_dpcr_on_a_laserscan_bag(tmp_path):
+    """sensor_msgs/LaserScan in a bag (no wheel odometry: constant-velocity prediction)."""
+    from slam.io.bag_writer import write_laserscan_bag
+    from slam.io.trajectory import write_tum
+
+    seq = simulate2d("office2d", frames=80, seed=4)
+    bag = write_laserscan_bag(
+        tmp_path / "scan.mcap",
+        seq.stamps,
+        np.where(np.isfinite(seq.ranges), seq.ranges, np.inf),
+        angle_min=float(seq.angles[0]),
+        angle_increment=float(seq.angles[1] - seq.angles[0]),
+        range_max=seq.scanner.max_range,
+        range_min=seq.scanner.min_range,
+        fmt="mcap",
+    )
+    T = np.repeat(np.eye(4)[None], len(seq.poses), axis=0)
+    c, s = np.cos(seq.poses[:, 2]), np.sin(seq.poses[:, 2])
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, :2, 3] = seq.poses[:, :2]
+    write_tum(tmp_path / "gt.tum", seq.stamps, T)
+    out = tmp_path / "run"
+    assert main(["run", str(bag), "--config", "dpcr2d", "--gt", str(tmp_path / "gt.tum"),
+                 "--out", str(out), "--quiet"]) == 0  # fmt: skip
+    assert len(np.loadtxt(out / "trajectory.tum")) == 80
+    assert _ape(out)["rmse"] < 0.03
