@@ -32,9 +32,16 @@ from slam.mapping.grid2d import (
     RegionDivision,
     compose2d,
     inverse2d,
+    matrix_to_pose2,
+    planar_information,
+    planar_points,
+    pose2_to_matrix,
+    predict2d,
     transform2d,
     wrap,
 )
+
+__all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
 from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
 from slam.types import Odometry, Scan
 
@@ -84,20 +91,6 @@ class Dpcr2dConfig:
             raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
         if not self.region_width > 0:
             raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
-
-
-def pose2_to_matrix(p: np.ndarray) -> np.ndarray:
-    """4x4 T of the planar pose (x, y, theta)."""
-    c, s = np.cos(p[2]), np.sin(p[2])
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:2, 3] = p[:2]
-    return T
-
-
-def matrix_to_pose2(T: np.ndarray) -> np.ndarray:
-    """(x, y, theta) of a 4x4 T (its projection on the plane)."""
-    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
 
 
 @dataclass
@@ -150,9 +143,7 @@ class Dpcr2d:
 
     # ------------------------------------------------------------------ steps
     def _points(self, scan: Scan) -> np.ndarray:
-        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
-        r = np.linalg.norm(xy, axis=1)
-        return xy[(r < self.cfg.max_range) & (r > 0.05)]
+        return planar_points(scan.xyz, self.cfg.max_range)
 
     def _rebuild_submap(self) -> None:
         self.submap = OccupancyGrid(self.cfg.submap_grid)
@@ -223,12 +214,12 @@ class Dpcr2d:
         extras: dict = {}
         pts = self._points(scan)
         odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
-        if self.frame and odom is not None and self._odom is not None and cfg.use_odometry:
-            # wheel odometry since the last scan, in the robot's frame (the prediction)
-            predicted = compose2d(self.pose, compose2d(inverse2d(self._odom), odom))
-            extras["prediction"] = "odometry"
-        else:
-            predicted = compose2d(self.pose, self.motion) if self.frame else self.pose
+        use = cfg.use_odometry
+        predicted = (
+            predict2d(self.pose, self.motion, self._odom if use else None, odom)
+            if self.frame
+            else self.pose
+        )
         self._odom = odom
         pose = predicted
         if len(pts) < cfg.min_points:
@@ -293,19 +284,7 @@ class Dpcr2d:
             pose=T,
             is_keyframe=is_kf,
             relative=relative,
-            info=_planar_information(relative),
+            info=planar_information(relative),
             cloud=cloud,
             extras=extras,
         )
-
-
-def _planar_information(relative: np.ndarray) -> np.ndarray:
-    """6x6 information (rotation first) of a planar motion: 2 cm + 2 % of the distance
-    and 0.5 deg + 2 % of the turn in the plane; z, roll and pitch held at 1 mm / 0.06 deg
-    (the 2D back end drops them)."""
-    dist = float(np.linalg.norm(relative[:2, 3]))
-    turn = abs(float(np.arctan2(relative[1, 0], relative[0, 0])))
-    s_t = 0.02 + 0.02 * dist
-    s_r = np.radians(0.5) + 0.02 * turn
-    sig = np.array([1e-3, 1e-3, s_r, s_t, s_t, 1e-3])
-    return np.diag(1.0 / sig**2)

@@ -22,7 +22,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError
-from slam.mapping.grid2d import compose2d, inverse2d, transform2d, wrap
+from slam.mapping.grid2d import (
+    compose2d,
+    inverse2d,
+    planar_information,
+    planar_points,
+    pose2_to_matrix,
+    predict2d,
+    transform2d,
+    wrap,
+)
 from slam.types import Odometry, Scan
 
 
@@ -155,26 +164,6 @@ def icp2d(
     return Icp2dResult(pose, rmse, matches, it, converged)
 
 
-def _planar_information(relative: np.ndarray) -> np.ndarray:
-    """6x6 information (rotation first) of a planar motion: 2 cm + 2 % of the distance and
-    0.5 deg + 2 % of the turn in the plane; z, roll, pitch held at 1 mm / 0.06 deg (the
-    same model as ``frontends.dpcr2d``, so that the two graphs weigh odometry alike)."""
-    dist = float(np.linalg.norm(relative[:2, 3]))
-    turn = abs(float(np.arctan2(relative[1, 0], relative[0, 0])))
-    s_t = 0.02 + 0.02 * dist
-    s_r = np.radians(0.5) + 0.02 * turn
-    sig = np.array([1e-3, 1e-3, s_r, s_t, s_t, 1e-3])
-    return np.diag(1.0 / sig**2)
-
-
-def _pose_matrix(p: np.ndarray) -> np.ndarray:
-    c, s = np.cos(p[2]), np.sin(p[2])
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:2, 3] = p[:2]
-    return T
-
-
 def _thin(xy: np.ndarray, voxel: float) -> np.ndarray:
     """One point per ``voxel`` cell (the first), world frame."""
     if voxel <= 0 or len(xy) == 0:
@@ -208,9 +197,7 @@ class Icp2d:
         }
 
     def _points(self, scan: Scan) -> np.ndarray:
-        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
-        r = np.linalg.norm(xy, axis=1)
-        return xy[(r < self.cfg.max_range) & (r > 0.05)]
+        return planar_points(scan.xyz, self.cfg.max_range)
 
     def _plausible(self, res: Icp2dResult, start: np.ndarray) -> bool:
         step = compose2d(inverse2d(start), res.pose)
@@ -226,10 +213,12 @@ class Icp2d:
         extras: dict = {}
         pts = self._points(scan)
         odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
-        if self.frame and odom is not None and self._odom is not None and cfg.use_odometry:
-            predicted = compose2d(self.pose, compose2d(inverse2d(self._odom), odom))
-        else:
-            predicted = compose2d(self.pose, self.motion) if self.frame else self.pose.copy()
+        use = cfg.use_odometry
+        predicted = (
+            predict2d(self.pose, self.motion, self._odom if use else None, odom)
+            if self.frame
+            else self.pose.copy()
+        )
         self._odom = odom
         pose = predicted
         if len(pts) < cfg.min_points:
@@ -256,8 +245,8 @@ class Icp2d:
             if len(self.window) > cfg.submap_scans:
                 self.window.popleft()
         is_kf = self.frame % cfg.keyframe_every == 0
-        T = _pose_matrix(self.pose)
-        relative = np.linalg.inv(_pose_matrix(self.pose_kf)) @ T
+        T = pose2_to_matrix(self.pose)
+        relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
         cloud = None
         if is_kf:
             cloud = np.column_stack([pts, np.zeros(len(pts))]).astype(np.float32)
@@ -273,7 +262,7 @@ class Icp2d:
             pose=T,
             is_keyframe=is_kf,
             relative=relative,
-            info=_planar_information(relative),
+            info=planar_information(relative),
             cloud=cloud,
             extras=extras,
         )

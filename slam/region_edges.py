@@ -28,24 +28,18 @@ import numpy as np
 from slam.errors import ConfigError
 from slam.factors import FactorConfig, GraphView, key, pose3, robust_noise
 from slam.features.lines2d import LineConfig, extract_lines
-from slam.mapping.grid2d import RegionDivision, compose2d, inverse2d
+from slam.mapping.grid2d import (
+    RegionDivision,
+    compose2d,
+    inverse2d,
+    matrix_to_pose2,
+    pose2_to_matrix,
+)
 from slam.registration.plicp import LineReference, PlicpConfig, plicp
 from slam.types import Keyframe
 
 CSV_COLUMNS = ("source", "target", "region_source", "region_target", "match_rate", "rmse",
                "accepted", "reason")  # fmt: skip
-
-
-def _pose2(T: np.ndarray) -> np.ndarray:
-    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
-
-
-def _matrix(p: np.ndarray) -> np.ndarray:
-    c, s = np.cos(p[2]), np.sin(p[2])
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:2, 3] = p[:2]
-    return T
 
 
 @dataclass
@@ -153,10 +147,10 @@ class RegionEdgePlugin:
             if ref is None:
                 continue
             T_j = graph.estimate(j)
-            guess = _pose2(np.linalg.solve(T_j, T_k))  # kf's frame in j's frame
+            guess = matrix_to_pose2(np.linalg.solve(T_j, T_k))  # kf's frame in j's frame
             res = plicp(target, ref, guess, self.plicp)
             rate = self.match_rate(ref.points, target, res.pose)
-            T_jk_odom = _pose2(np.linalg.solve(graph.keyframes[j].pose_odom, kf.pose_odom))
+            T_jk_odom = matrix_to_pose2(np.linalg.solve(graph.keyframes[j].pose_odom, kf.pose_odom))
             corr = compose2d(inverse2d(T_jk_odom), res.pose)
             path = self._path[kf.id] - self._path[j]
             reason = ""
@@ -182,7 +176,9 @@ class RegionEdgePlugin:
                 cfg.robust_param,
             )
             factors.append(
-                gtsam.BetweenFactorPose3(key(j), key(kf.id), pose3(_matrix(res.pose)), noise)
+                gtsam.BetweenFactorPose3(
+                    key(j), key(kf.id), pose3(pose2_to_matrix(res.pose)), noise
+                )
             )
         return factors
 

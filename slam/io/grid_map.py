@@ -53,15 +53,11 @@ def read_pgm(path: str | Path) -> np.ndarray:
     return np.frombuffer(parts[4][: rows * cols], dtype=np.uint8).reshape(rows, cols)
 
 
-def _pose2(T: np.ndarray) -> np.ndarray:
-    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
-
-
 def region_corrections(pipeline) -> dict[int, np.ndarray]:
     """World-frame correction (x, y, theta) of each regional map: optimised pose o
     odometry pose^-1 of the keyframe that closed it (its ``region_left``); the region the
     run ended in takes the last keyframe's."""
-    from slam.mapping.grid2d import compose2d, inverse2d
+    from slam.mapping.grid2d import compose2d, inverse2d, matrix_to_pose2
 
     st = pipeline.state
     out: dict[int, np.ndarray] = {}
@@ -69,7 +65,9 @@ def region_corrections(pipeline) -> dict[int, np.ndarray]:
     for kf in st.keyframes:
         if kf.id not in st.estimates:
             continue
-        corr = compose2d(_pose2(st.estimates[kf.id]), inverse2d(_pose2(kf.pose_odom)))
+        corr = compose2d(
+            matrix_to_pose2(st.estimates[kf.id]), inverse2d(matrix_to_pose2(kf.pose_odom))
+        )
         region = int(kf.extras.get("region_left", -1))
         if region >= 0:
             out[region] = corr

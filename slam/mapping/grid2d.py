@@ -202,6 +202,54 @@ def wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
 
 
+def pose2_to_matrix(p: np.ndarray) -> np.ndarray:
+    """4x4 T of the planar pose (x, y, theta)."""
+    c, s = np.cos(p[2]), np.sin(p[2])
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = p[:2]
+    return T
+
+
+def matrix_to_pose2(T: np.ndarray) -> np.ndarray:
+    """(x, y, theta) of a 4x4 T (its projection on the plane)."""
+    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
+
+
+def predict2d(
+    pose: np.ndarray,
+    motion: np.ndarray,
+    odom_prev: np.ndarray | None,
+    odom: np.ndarray | None,
+) -> np.ndarray:
+    """The next planar pose: ``pose`` moved by the wheel odometry since the last scan
+    (odom_prev^-1 o odom, in the robot's frame) when both readings exist, else by the last
+    frame-to-frame ``motion`` (constant velocity)."""
+    if odom_prev is not None and odom is not None:
+        return compose2d(pose, compose2d(inverse2d(odom_prev), odom))
+    return compose2d(pose, motion)
+
+
+def planar_information(relative: np.ndarray) -> np.ndarray:
+    """6x6 information (rotation first) of a planar motion: 2 cm + 2 % of the distance
+    and 0.5 deg + 2 % of the turn in the plane; z, roll and pitch held at 1 mm / 0.06 deg
+    (a 2D back end drops them). The odometry model of the 2D front ends, so that their
+    graphs weigh odometry alike."""
+    dist = float(np.linalg.norm(relative[:2, 3]))
+    turn = abs(float(np.arctan2(relative[1, 0], relative[0, 0])))
+    s_t = 0.02 + 0.02 * dist
+    s_r = np.radians(0.5) + 0.02 * turn
+    sig = np.array([1e-3, 1e-3, s_r, s_t, s_t, 1e-3])
+    return np.diag(1.0 / sig**2)
+
+
+def planar_points(xyz: np.ndarray, max_range: float, min_range: float = 0.05) -> np.ndarray:
+    """The (N, 2) x, y of a planar scan's points within (min_range, max_range) m."""
+    xy = np.asarray(xyz[:, :2], dtype=np.float64)
+    r = np.linalg.norm(xy, axis=1)
+    return xy[(r < max_range) & (r > min_range)]
+
+
 # --------------------------------------------------------------------------- regions
 @dataclass(frozen=True)
 class RegionDivision:
