@@ -34,6 +34,7 @@ from slam.mapping.grid2d import (
     inverse2d,
     matrix_to_pose2,
     pose2_to_matrix,
+    transform2d,
 )
 from slam.registration.plicp import LineReference, PlicpConfig, plicp
 from slam.types import Keyframe
@@ -108,17 +109,15 @@ class RegionEdgePlugin:
             self._refs[kf_id] = LineReference.from_lines(lines)
         return self._refs[kf_id]
 
-    def match_rate(self, a: np.ndarray, b: np.ndarray, T_ab: np.ndarray) -> float:
-        """Eq. (11) for clouds a, b (N, 2) with ``b`` moved into a's frame by T_ab."""
-        from scipy.spatial import cKDTree
-
-        if len(a) == 0 or len(b) == 0:
+    def match_rate(self, ref: LineReference, b: np.ndarray, T_ab: np.ndarray) -> float:
+        """Eq. (11) for the reference's points and cloud ``b`` (N, 2) moved into the
+        reference frame by T_ab (the reference's KD-tree, built once per keyframe)."""
+        if len(ref) == 0 or len(b) == 0:
             return 0.0
-        c, s = np.cos(T_ab[2]), np.sin(T_ab[2])
-        moved = b @ np.array([[c, s], [-s, c]]) + T_ab[:2]
-        dist, _ = cKDTree(a).query(moved, distance_upper_bound=self.config.match_distance)
+        moved = transform2d(T_ab, b)
+        dist, _ = ref.tree.query(moved, distance_upper_bound=self.config.match_distance)
         matches = int(np.isfinite(dist).sum())
-        return 2.0 * matches / (len(a) + len(b))
+        return 2.0 * matches / (len(ref) + len(b))
 
     # ------------------------------------------------------------------ contract
     def on_keyframe(self, kf: Keyframe, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
@@ -149,7 +148,7 @@ class RegionEdgePlugin:
             T_j = graph.estimate(j)
             guess = matrix_to_pose2(np.linalg.solve(T_j, T_k))  # kf's frame in j's frame
             res = plicp(target, ref, guess, self.plicp)
-            rate = self.match_rate(ref.points, target, res.pose)
+            rate = self.match_rate(ref, target, res.pose)
             T_jk_odom = matrix_to_pose2(np.linalg.solve(graph.keyframes[j].pose_odom, kf.pose_odom))
             corr = compose2d(inverse2d(T_jk_odom), res.pose)
             path = self._path[kf.id] - self._path[j]
