@@ -11,7 +11,10 @@ trap 'rm -rf "$work"' EXIT
 echo "wheel check: building the wheel" >&2
 .venv/bin/python -m pip wheel -q --no-deps --wheel-dir "$work/dist" "$repo" 2>&1 | grep -v "^WARNING" >&2 || true
 wheel=$(ls "$work"/dist/pyslam_graph-*.whl)
-if ! unzip -l "$wheel" | grep -q "slam/configs/improved_floam.yaml"; then
+# list first, then search: `unzip | grep -q` under pipefail fails when grep stops reading
+# early and unzip gets SIGPIPE (more likely the more files the wheel holds)
+listing=$(unzip -l "$wheel")
+if ! grep -q "slam/configs/improved_floam.yaml" <<<"$listing"; then
   echo "wheel check: $wheel does not carry slam/configs/*.yaml" >&2
   exit 1
 fi
