@@ -100,10 +100,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary = run_one(
         Path(args.bag), config, out, topic=args.topic, gt=_gt(args.gt), quiet=args.quiet
     )
-    from slam.io.grid_map import write_region_map
-
-    for path in write_region_map(summary["pipeline"], out):  # 2D runs: map_server files
-        summary["written"][path.stem + path.suffix] = path
     _print_run_summary(summary)
     return _stop_code(summary)
 

@@ -83,6 +83,10 @@ def run_one(
             "input_notes": list(getattr(source, "notes", [])),
         },
     )
+    from slam.io.grid_map import write_region_map
+
+    for path in write_region_map(pipeline, out):  # 2D runs: map_server files
+        written[path.stem + path.suffix] = path
     summary: dict[str, Any] = {
         "out": out,
         "frames": state.frames,
