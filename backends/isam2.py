@@ -7,6 +7,7 @@ relinearisation settle.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -76,6 +77,10 @@ class Isam2Backend:
         self._ids: list[int] = []
         self._cache: dict[int, gtsam.Pose3] | None = {}
         self.n_updates = 0
+        self.loop_updates = 0  # updates with loop_closed
+        self.loop_update_ms: list[float] = []  # their iSAM2 time (ms), extra updates included
+        self.extra_update_ms = 0.0  # total time (ms) of the extra updates after loops
+        self.extra_updates = 0
 
     def update(
         self, factors: list[Any], initial: dict[int, gtsam.Pose3], loop_closed: bool = False
@@ -89,11 +94,15 @@ class Isam2Backend:
             if self._values.exists(key(kf_id)):
                 raise SlamError(f"keyframe {kf_id} already has a value in the iSAM2 graph")
             new_values.insert(key(kf_id), pose)
+        t0 = time.perf_counter()
         try:
             self._isam.update(new_factors, new_values)
             if loop_closed:
+                t1 = time.perf_counter()
                 for _ in range(self.config.extra_updates_after_loop):
                     self._isam.update()
+                    self.extra_updates += 1
+                self.extra_update_ms += 1e3 * (time.perf_counter() - t1)
         except (RuntimeError, ValueError, IndexError) as exc:
             raise SlamError(f"iSAM2 update failed: {exc}") from exc
         self._graph.push_back(new_factors)
@@ -101,6 +110,22 @@ class Isam2Backend:
         self._ids.extend(sorted(initial))
         self._cache = None
         self.n_updates += 1
+        if loop_closed:
+            self.loop_updates += 1
+            self.loop_update_ms.append(1e3 * (time.perf_counter() - t0))
+
+    def stats(self) -> dict[str, float]:
+        """Counts and timings (ms) for metrics.json: updates, loop updates (with their extra
+        updates) and their mean / max ms, the extra updates' share."""
+        loops = self.loop_update_ms
+        return {
+            "updates": self.n_updates,
+            "loop_updates": self.loop_updates,
+            "loop_update_ms_mean": round(sum(loops) / len(loops), 3) if loops else 0.0,
+            "loop_update_ms_max": round(max(loops), 3) if loops else 0.0,
+            "extra_updates": self.extra_updates,
+            "extra_update_ms_total": round(self.extra_update_ms, 3),
+        }
 
     def estimate(self) -> dict[int, gtsam.Pose3]:
         """Current estimate of every keyframe id (cached until the next update)."""

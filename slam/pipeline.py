@@ -76,6 +76,9 @@ class RunState:
     frame_seconds: array = field(default_factory=lambda: array("d"))
     backend_seconds: array = field(default_factory=lambda: array("d"))
     stage_max_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    # per-frame seconds of each stage (front end, each factor plugin, back end; 0 on frames
+    # where a stage did not run), aligned with frame_seconds: where a run's time grows
+    stage_frame_seconds: dict[str, array] = field(default_factory=dict)
     path_length: float = 0.0  # odometric distance travelled (m), summed frame to frame
     # (peak memory MiB, path length m) after MEMORY_REFERENCE_FRAME frames: the growth of the
     # peak from there per km travelled is metrics.json's memory_mb_per_km
@@ -169,6 +172,7 @@ class Pipeline:
         self._period = 0.1  # sweep period (s): median stamp step of the first scans
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
+        self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
         self.view = GraphView(self.state.keyframes, self._estimate)
 
     # ------------------------------------------------------------------ graph view
@@ -260,6 +264,7 @@ class Pipeline:
         st.frame_kf.append(kf.id)
         st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, pose))
         st.frame_seconds.append(time.perf_counter() - t0)
+        self._close_frame_stages()
         if st.frames == MEMORY_REFERENCE_FRAME:
             from slam.outputs import peak_memory_mb
 
@@ -269,6 +274,19 @@ class Pipeline:
         st = self.state
         st.stage_seconds[stage] += seconds
         st.stage_max_seconds[stage] = max(st.stage_max_seconds[stage], seconds)
+        self._frame_stages[stage] = self._frame_stages.get(stage, 0.0) + seconds
+
+    def _close_frame_stages(self) -> None:
+        """Append this frame's seconds per stage to ``state.stage_frame_seconds`` (0 for a
+        stage that did not run; a stage seen for the first time is 0 on earlier frames)."""
+        st = self.state
+        n = len(st.frame_seconds)
+        for stage in self._frame_stages:
+            if stage not in st.stage_frame_seconds:
+                st.stage_frame_seconds[stage] = array("d", bytes(8 * (n - 1)))
+        for stage, series in st.stage_frame_seconds.items():
+            series.append(self._frame_stages.get(stage, 0.0))
+        self._frame_stages = {}
 
     def _add_keyframe(self, scan: Scan, odom: Any) -> None:
         st = self.state

@@ -114,6 +114,10 @@ def test_isam2_keeps_every_factor_and_value_and_single_pose_lookup():
     assert sorted(est) == list(range(len(initial)))
     assert backend.pose(7).equals(est[7], 1e-9)
     assert backend.n_updates == len(initial)
+    stats = backend.stats()  # metrics.json backend_stats: the loop update and its extra ones
+    assert stats["updates"] == len(initial) and stats["loop_updates"] == 1
+    assert stats["extra_updates"] == backend.config.extra_updates_after_loop
+    assert stats["loop_update_ms_max"] >= stats["loop_update_ms_mean"] > 0.0
 
 
 def test_isam2_extra_updates_after_loop_improve_convergence():

@@ -155,3 +155,39 @@ def test_empty_first_scans_leave_no_beam_model_and_the_run_goes_on():
     p = Pipeline(SlamConfig(), frontend=fe, factor_sources=[])
     p.run([Scan(stamp=float(i), xyz=np.zeros((0, 3)), index=i) for i in range(4)])
     assert p.state.frames == 4 and p.beams is False and p.state.sensor is None
+
+
+class LateSlowPlugin:
+    """A factor plugin that costs ``ms`` on every keyframe after frame ``after``."""
+
+    def __init__(self, after: int, ms: float):
+        self.after, self.ms = after, ms
+
+    def on_keyframe(self, kf, graph):
+        if kf.frame_index >= self.after:
+            import time
+
+            time.sleep(self.ms / 1e3)
+        return []
+
+
+def test_stage_timings_per_frame_show_which_stage_grows(tmp_path):
+    from slam.pipeline import FactorSource
+
+    n = 240
+    poses = np.stack([pose(1.5 * i, 0.0, 0.0, 0.0) for i in range(n)])  # a keyframe per frame
+    sources = build_factor_plugins({"prior": {}, "odometry": {}})
+    sources.append(FactorSource("slow", LateSlowPlugin(after=n - 100, ms=4.0)))
+    pipe = Pipeline(SlamConfig(), frontend=ScriptedFrontend(poses), factor_sources=sources)
+    st = pipe.run(scans(n))
+    assert all(len(s) == n for s in st.stage_frame_seconds.values())
+    assert {"frontend", "factor:slow", "backend"} <= set(st.stage_frame_seconds)
+    write_outputs(pipe, tmp_path, resolved_config={})
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    first, last = m["stage_ms_first100"], m["stage_ms_last100"]
+    assert first["factor:slow"] < 0.5 and last["factor:slow"] >= 4.0
+    # the stages and the pipeline's own rest add up to the frame time of each window
+    for window, frame in ((first, m["frame_ms_first100"]), (last, m["frame_ms_last100"])):
+        assert sum(window.values()) == pytest.approx(frame, rel=1e-3, abs=1e-3)
+    # the growth is the slow stage's, not the pipeline's bookkeeping
+    assert last["other"] < 1.0

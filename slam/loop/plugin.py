@@ -266,6 +266,7 @@ class LoopClosurePlugin:
         self._last_accepted = -(10**9)
         self.detect_ms: list[float] = []  # per keyframe: descriptor + search
         self.verify_ms: list[float] = []  # per keyframe with candidates: all of verification
+        self.verify_ms_by_keyframe: list[float] = []  # per keyframe, 0 without candidates
         self.registrations = 0  # candidates registered by GICP
         self.register_ms = 0.0  # their total time (ms)
         self.skipped = 0  # candidates ruled out by the odometry before registration
@@ -289,12 +290,14 @@ class LoopClosurePlugin:
         candidates = [] if pending else self._candidates(kf, desc, cc, graph)
         self.detect_ms.append(1e3 * (time.perf_counter() - t0))
         if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
+            self.verify_ms_by_keyframe.append(0.0)
             return []
         t1 = time.perf_counter()
         try:
             return self._verify_candidates(kf, candidates, graph)
         finally:
             self.verify_ms.append(1e3 * (time.perf_counter() - t1))
+            self.verify_ms_by_keyframe.append(self.verify_ms[-1])
 
     # ------------------------------------------------------------------ steps
     def _fix_descriptor_params(self) -> None:
@@ -561,10 +564,17 @@ class LoopClosurePlugin:
         detect_ms_*: descriptor + candidate search per keyframe (mean, max); verify_ms_mean:
         per keyframe that had candidates; verify_ms_per_keyframe: verification time spread
         over all keyframes (what it adds to the keyframe rate); register_ms_mean: per
-        candidate registered by GICP; skipped: candidates the odometry ruled out unregistered.
+        candidate registered by GICP; skipped: candidates the odometry ruled out unregistered;
+        *_ms_first100 / *_ms_last100: mean per keyframe over the first / last 100 keyframes
+        (does detection or verification grow with the run?).
         """
         n = len(self.detect_ms)
         total = float(np.sum(self.verify_ms)) if self.verify_ms else 0.0
+        windows = {}
+        for name, series in (("detect", self.detect_ms), ("verify", self.verify_ms_by_keyframe)):
+            if series:
+                windows[f"{name}_ms_first100"] = float(np.mean(series[:100]))
+                windows[f"{name}_ms_last100"] = float(np.mean(series[-100:]))
         return {
             "keyframes": len(self.db),
             "verified": len(self.events),
@@ -578,6 +588,7 @@ class LoopClosurePlugin:
             "register_ms_mean": self.register_ms / self.registrations
             if self.registrations
             else 0.0,
+            **windows,
         }
 
     def write_csv(self, path: str | Path) -> None:
