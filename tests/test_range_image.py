@@ -166,3 +166,20 @@ def test_ring_ranks_follow_elevation():
     el = np.array([0.1, -0.2, 0.3, 0.1, -0.2])
     rank, n = ring_ranks(np.array([5, 9, -1, 5, 9]), el)
     assert n == 3 and rank.tolist() == [1, 0, 2, 1, 0]
+
+
+@pytest.mark.parametrize(("name", "budget"), [("corridor", 25), ("urban64", 60)])
+def test_box_search_completes_uncertified_rows_exactly(name, budget, request):
+    """The points the window leaves (here many, by a tight visit budget) answered by the box
+    search (``complete=True``, the default of self_knn): the KD-tree's neighbours."""
+    xyz, ring = request.getfixturevalue(name)
+    res = range_image_knn(xyz, ring, K, max_visits=budget, complete=True)
+    assert res.complete
+    left = np.flatnonzero(~res.certified)
+    assert len(left) > 0.02 * len(xyz)  # the box search did answer many rows
+    ref_idx, ref_dist = kdtree(xyz)
+    assert_same_knn(xyz, res.idx[:, 1:], res.dist, ref_idx[:, 1:], ref_dist)
+    assert np.array_equal(res.idx[:, 0], np.arange(len(xyz)))
+    # the earlier fallback (a KD-tree over the whole scan) gives the same rows
+    idx, dist = self_knn(xyz, K, ring=ring, fallback="kdtree")
+    assert np.abs(dist - res.dist).max() <= 1e-12

@@ -10,6 +10,8 @@ import numpy as np
 import small_gicp
 from scipy.spatial import cKDTree
 
+from slam.errors import ConfigError
+
 KNN_THREADS = 2  # build + query threads (28 vs 41 ms for a 28.8k-point scan at k=10, quiet box)
 
 
@@ -36,22 +38,33 @@ def fallback_tree(points: np.ndarray) -> cKDTree:
 
 
 def self_knn(
-    xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None, threads: int = KNN_THREADS
+    xyz: np.ndarray,
+    k: int,
+    *,
+    ring: np.ndarray | None = None,
+    threads: int = KNN_THREADS,
+    fallback: str = "boxes",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each point's k nearest other points: (N, k+1) int64 indices, the point itself first,
     and (N, k) distances (m) to the k others, ascending. Needs 1 <= k <= N - 1.
 
     ring: (N,) beam index per point (``scan.ring``): the exact range-image search
     (``slam.preprocess.range_image``, same distances as the KD-tree, same index sets up to
-    ties), with the KD-tree only for the points it cannot certify. Without ring: KD-tree.
+    ties). fallback: how the points the window cannot certify are answered, "boxes" (the
+    exact box search of ``range_image_knn(complete=True)``, default) or "kdtree" (a KD-tree
+    over the whole scan, the earlier way, kept for benchmarks). Without ring: KD-tree.
     """
+    if fallback not in ("boxes", "kdtree"):
+        raise ConfigError(f"unknown k-NN fallback '{fallback}'; valid: boxes, kdtree")
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     if ring is None:
         idx, dist = knn(xyz, xyz, k + 1, threads)
         return idx, dist[:, 1:]
     from slam.preprocess.range_image import range_image_knn
 
-    res = range_image_knn(xyz, ring, k)
+    res = range_image_knn(xyz, ring, k, complete=fallback == "boxes")
+    if res.complete:
+        return res.idx, res.dist
     idx, dist = res.idx, res.dist
     bad = np.flatnonzero(~res.certified)
     if len(bad) > len(xyz) // 4:  # rings that are no beams: the whole scan to the KD-tree

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.errors import InputError
-from slam.preprocess.range_image_kernels import range_image, ring_ranks, window_knn
+from slam.preprocess.range_image_kernels import box_knn, range_image, ring_ranks, window_knn
 
 __all__ = ["RangeImageKnn", "range_image_knn", "ring_ranks"]
 
@@ -37,19 +37,24 @@ MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-t
 # the KD-tree. Real rings: 0 (simulated), 0.002 (KITTI-raw, rings inferred); one ring for a
 # 30 deg field of view: ~0.13; the window search measured 2-4x slower than the KD-tree there.
 MAX_RING_SPREAD = np.radians(1.0)
+# Above this share of uncertified points the box search is left to the caller's KD-tree
+MAX_UNCERTIFIED = 0.25
 
 
 @dataclass(frozen=True)
 class RangeImageKnn:
     """idx (N, k+1) int64 indices: each point itself, then its k nearest other points;
     dist (N, k) the distances to those k (m), ascending; certified (N,) True where the
-    window answer is proven exact (rows where it is False are not valid); visits (N,)
-    distance evaluations per point."""
+    window answer is proven exact (rows where it is False are not valid unless
+    ``complete``); visits (N,) distance evaluations per point of the window search;
+    complete: True when the uncertified rows were answered by the exact box search
+    (``range_image_knn(..., complete=True)``), so that every row is valid."""
 
     idx: np.ndarray
     dist: np.ndarray
     certified: np.ndarray
     visits: np.ndarray
+    complete: bool = False
 
     @property
     def certified_rate(self) -> float:
@@ -58,11 +63,21 @@ class RangeImageKnn:
 
 
 def range_image_knn(
-    xyz: np.ndarray, ring: np.ndarray, k: int, *, max_visits: int = MAX_VISITS
+    xyz: np.ndarray,
+    ring: np.ndarray,
+    k: int,
+    *,
+    max_visits: int = MAX_VISITS,
+    complete: bool = False,
 ) -> RangeImageKnn:
     """k nearest other points of each point of a scan (N, 3) m with beam index ring (N,),
     searched in the range image with the exactness certificate (module doc). Needs
-    1 <= k <= N - 1."""
+    1 <= k <= N - 1.
+
+    complete: answer the points the window cannot certify by an exact search over bounding
+    boxes of short range-image arcs (``box_knn``; no KD-tree over the whole scan), unless
+    they are more than MAX_UNCERTIFIED of the scan (labels that are no beams: the caller's
+    KD-tree is then cheaper); the result's ``complete`` says whether it was done."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     ring = np.asarray(ring)
     n = len(xyz)
@@ -90,8 +105,16 @@ def range_image_knn(
         xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits,
         idx, dist, certified, visits, in_place,
     )  # fmt: skip
+    done = False
+    if complete:
+        bad = np.flatnonzero(~(certified[order] if in_place else certified))  # sorted positions
+        if len(bad) <= MAX_UNCERTIFIED * n:
+            box_knn(xyz_s, order, bad, k, idx, dist, in_place)
+            done = True
     if in_place:
-        return RangeImageKnn(idx, dist, certified, visits)
+        return RangeImageKnn(idx, dist, certified, visits, done)
     inv = np.empty(n, dtype=np.int64)  # sorted rows back to the input order (a gather)
     inv[order] = np.arange(n)
-    return RangeImageKnn(idx.take(inv, axis=0), dist.take(inv, axis=0), certified[inv], visits[inv])
+    return RangeImageKnn(
+        idx.take(inv, axis=0), dist.take(inv, axis=0), certified[inv], visits[inv], done
+    )

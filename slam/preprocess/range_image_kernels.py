@@ -500,3 +500,106 @@ def window_knn(
             for t in range(k):
                 out_dist[o, t] = np.sqrt(bd[t])
                 out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
+
+
+BOX = 16  # sorted points per bounding box of the exact search for uncertified points
+SUPER = 16  # boxes per super box
+
+
+@njit(cache=True)
+def chunk_boxes(xyz: np.ndarray, size: int) -> np.ndarray:
+    """(ceil(N / size), 6) axis-aligned bounds (min xyz, max xyz; m) of consecutive chunks of
+    ``size`` points. Chunks of the range-image order are short arcs of one ring: tight boxes."""
+    n = len(xyz)
+    nb = (n + size - 1) // size
+    box = np.empty((nb, 6))
+    for b in range(nb):
+        for c in range(3):
+            box[b, c] = np.inf
+            box[b, c + 3] = -np.inf
+        for s in range(b * size, min(n, (b + 1) * size)):
+            for c in range(3):
+                box[b, c] = min(box[b, c], xyz[s, c])
+                box[b, c + 3] = max(box[b, c + 3], xyz[s, c])
+    return box
+
+
+@njit(cache=True)
+def merge_boxes(box: np.ndarray, size: int) -> np.ndarray:
+    """Bounds of consecutive groups of ``size`` boxes (the next level of ``chunk_boxes``)."""
+    nb = len(box)
+    ns = (nb + size - 1) // size
+    out = np.empty((ns, 6))
+    for g in range(ns):
+        for c in range(3):
+            out[g, c] = np.inf
+            out[g, c + 3] = -np.inf
+        for b in range(g * size, min(nb, (g + 1) * size)):
+            for c in range(3):
+                out[g, c] = min(out[g, c], box[b, c])
+                out[g, c + 3] = max(out[g, c + 3], box[b, c + 3])
+    return out
+
+
+@njit(cache=True, inline="always")
+def _box_dist2(box: np.ndarray, b: int, px: float, py: float, pz: float) -> float:
+    """Squared distance (m^2) from (px, py, pz) to box b (0 inside)."""
+    dx = max(box[b, 0] - px, 0.0, px - box[b, 3])
+    dy = max(box[b, 1] - py, 0.0, py - box[b, 4])
+    dz = max(box[b, 2] - pz, 0.0, pz - box[b, 5])
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, parallel=True)
+def box_knn(
+    xyz: np.ndarray,
+    order: np.ndarray,
+    queries: np.ndarray,
+    k: int,
+    out_idx: np.ndarray,
+    out_dist: np.ndarray,
+    in_input_order: bool,
+) -> None:
+    """Exact k-NN of the sorted points ``queries`` (positions into the range-image order)
+    by a two-level box hierarchy over that order (``chunk_boxes``, BOX points per box, SUPER
+    boxes per super box): every box nearer than the current k-th distance is read, so the
+    answer is exact whatever the window search left. The rows' window answers (k real
+    points, an upper bound of the k-th distance when finite) seed the pruning radius.
+    Rows, as ``window_knn`` writes them, are overwritten with the exact answer."""
+    box = chunk_boxes(xyz, BOX)
+    sup = merge_boxes(box, SUPER)
+    n = len(xyz)
+    for r in prange(len(queries)):
+        s = queries[r]
+        o = order[s] if in_input_order else s
+        px, py, pz = xyz[s, 0], xyz[s, 1], xyz[s, 2]
+        seed = out_dist[o, k - 1]
+        # the seed distance was rounded through sqrt: widen it by far more than an ulp
+        cut = (seed * (1.0 + 1e-9)) ** 2 + 1e-300 if seed < np.inf else np.inf
+        bd = np.full(k, np.inf)
+        bi = np.full(k, -1, dtype=np.int64)
+        dsup = np.empty(len(sup))
+        for g in range(len(sup)):
+            dsup[g] = _box_dist2(sup, g, px, py, pz)
+        g0 = np.argmin(dsup)
+        for h in range(len(sup) + 1):  # the nearest super box first: a small radius early
+            g = g0 if h == 0 else h - 1
+            if dsup[g] > cut or (h > 0 and g == g0):
+                continue
+            for b in range(g * SUPER, min(len(box), (g + 1) * SUPER)):
+                if _box_dist2(box, b, px, py, pz) > cut:
+                    continue
+                for q in range(b * BOX, min(n, (b + 1) * BOX)):
+                    if q == s:
+                        continue
+                    dx = xyz[q, 0] - px
+                    dy = xyz[q, 1] - py
+                    dz = xyz[q, 2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < bd[k - 1]:
+                        _insert(bd, bi, d2, q)
+                        cut = min(cut, bd[k - 1])
+        out_idx[o, 0] = order[s]
+        for t in range(k):
+            out_dist[o, t] = np.sqrt(bd[t])
+            out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
