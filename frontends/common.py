@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.deskew import deskew, se3_log
+from slam.features.thinning import voxel_thin
 from slam.frontend import KeyframeConfig, is_new_keyframe
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.gicp import RegistrationError, RegistrationResult, se3_exp
 from slam.registration.information import (
     Information,
@@ -305,7 +305,7 @@ class ScanToMapFrontend:
             # only keyframes keep a cloud (the pipeline stores it; the first frame always
             # becomes one): no voxel pass over the scans in between
             t = time.perf_counter()
-            kept = voxel_downsample(filtered, self._c.cloud_voxel)
+            kept = voxel_thin(filtered, self._c.cloud_voxel)
             cloud = np.ascontiguousarray(filtered[kept], dtype=np.float32)
             timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
         if is_kf:

@@ -11,8 +11,8 @@ import numpy as np
 
 from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.features.loam import FeatureConfig, extract_features
+from slam.features.thinning import voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.feature_icp import FeatureIcpConfig, FeatureTarget, feature_icp_align
 from slam.types import Scan
 
@@ -56,10 +56,8 @@ class Floam(ScanToMapFrontend):
         extras: dict = {"n_after_sor": int(len(xyz))}
         t = time.perf_counter()
         feats = extract_features(xyz, scan.ring, cfg.features, top_picks=False)
-        edges = xyz[feats.edge_idx]
-        edges = edges[voxel_downsample(edges, cfg.edge_voxel)]
-        planes = xyz[feats.plane_idx]
-        planes = planes[voxel_downsample(planes, cfg.plane_voxel)]
+        edges = xyz[feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]]
+        planes = xyz[feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]]
         extras.update(n_edges=int(len(edges)), n_planes=int(len(planes)))
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
         if len(edges) + len(planes) < 10:

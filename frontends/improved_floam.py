@@ -14,9 +14,9 @@ from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.errors import ConfigError
 from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
+from slam.features.thinning import voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.preprocess.sor import SorConfig, apply_sor, neighbourhoods
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.gicp import GicpConfig, GicpTarget, estimate_covariances, gicp_align
 from slam.types import Scan
 
@@ -109,8 +109,9 @@ class ImprovedFloam(ScanToMapFrontend):
             self._features_no_kappa,
             top_picks=False,
         )
-        e_idx = feats.edge_idx[voxel_downsample(xyz[feats.edge_idx], cfg.edge_voxel)]
-        p_idx = feats.plane_idx[voxel_downsample(xyz[feats.plane_idx], cfg.plane_voxel)]
+        # thinned in place (no gathered copies): the points voxel_downsample would keep
+        e_idx = feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]
+        p_idx = feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]
         if cfg.features.use_covariance_curvature and len(e_idx) + len(p_idx) > 0:
             # curvature correction (paper 000, kappa = tr/||.||_F) on the features actually
             # used: one k-NN query of a few thousand points instead of the whole scan
@@ -136,7 +137,7 @@ class ImprovedFloam(ScanToMapFrontend):
         rc = cfg.registration
         src_idx = np.concatenate([e_idx, p_idx])
         if cfg.covariance_source == "scan":
-            ref_idx = np.concatenate([voxel_downsample(xyz, cfg.covariance_voxel), src_idx])
+            ref_idx = np.concatenate([voxel_thin(xyz, cfg.covariance_voxel), src_idx])
         else:
             ref_idx = src_idx
         covs = estimate_covariances(

@@ -154,3 +154,26 @@ def test_covariances_from_given_neighbours_equal_a_new_query():
     np.testing.assert_array_equal(given, estimate_covariances(xyz, 10, 1e-6, query=q))
     with pytest.raises(RegistrationError):
         estimate_covariances(xyz, 10, 1e-6, query=q, neighbours=idx[:, :5])
+
+
+def test_knn_tree_answers_as_a_kd_tree():
+    """small_gicp's KdTree behind cKDTree's interface: the same neighbours and distances,
+    the same inf / len(points) for neighbours beyond the bound or missing."""
+    from scipy.spatial import cKDTree
+
+    from slam.registration.gicp import KnnTree
+
+    rng = np.random.default_rng(13)
+    xyz = rng.uniform(-5, 5, (3000, 3)) * [1, 1, 0.2]
+    q = rng.uniform(-6, 6, (400, 3))
+    ours, ref = KnnTree(xyz), cKDTree(xyz)
+    for k, bound in ((1, np.inf), (10, np.inf), (10, 0.6), (40, 1.0)):
+        d, j = ours.query(q, k=k, distance_upper_bound=bound, workers=2)
+        d_ref, j_ref = ref.query(q, k=k, distance_upper_bound=bound)
+        np.testing.assert_allclose(d, d_ref, rtol=1e-12)
+        np.testing.assert_array_equal(j, j_ref)
+    assert np.isfinite(d).any() and not np.isfinite(d).all()  # the bound cut some
+    d, j = KnnTree(xyz[:4]).query(q[:3], k=6)
+    d_ref, j_ref = cKDTree(xyz[:4]).query(q[:3], k=6)
+    np.testing.assert_array_equal(j, j_ref)
+    np.testing.assert_allclose(d, d_ref, rtol=1e-12)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import small_gicp
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -56,6 +57,9 @@ class GicpConfig:
     ``estimate_covariances``). max_correspondence:
     rejection distance (m). transformation_epsilon: squared step size (m^2 and rad^2) below
     which the solver stops; fitness_epsilon: relative change of the cost below which it stops.
+    predict_convergence: also stop when the steps contract so fast that all the steps still to
+    come (the geometric tail of the last two) sum to less than the transformation epsilon,
+    without the association that would only confirm it (see ``solve_weighted``).
     """
 
     k_covariance: int = 10
@@ -68,6 +72,7 @@ class GicpConfig:
     max_iterations: int = 30
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
+    predict_convergence: bool = False
     threads: int = 2
 
     def __post_init__(self) -> None:
@@ -174,6 +179,34 @@ def _workers(n_queries: int, threads: int) -> int:
     return threads if n_queries >= SERIAL_QUERIES else 1
 
 
+class KnnTree:
+    """Exact k-NN over fixed points with ``cKDTree.query``'s interface and results (k
+    nearest, ascending; beyond ``distance_upper_bound`` or missing: inf and ``len(points)``),
+    answered by small_gicp's KdTree: the same neighbours as a cKDTree at about half the cost
+    (11.7k voxel-thinned 64-beam features, k = 10: 1.6 + 7.7 ms CPU against 2.1 + 14.3)."""
+
+    def __init__(self, points: np.ndarray):
+        self.n = len(points)
+        self._tree = small_gicp.KdTree(np.ascontiguousarray(points, dtype=np.float64), 1)
+
+    def query(
+        self, x: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+        k_found = min(int(k), self.n)
+        if len(x) == 0 or k_found == 0:
+            d, j = np.full((len(x), k), np.inf), np.full((len(x), k), self.n, dtype=np.int64)
+        else:
+            j, sq = self._tree.batch_knn_search(x, k_found, num_threads=max(int(workers), 1))
+            j, d = j.astype(np.int64), np.sqrt(sq)
+            far = ~(d < distance_upper_bound)  # cKDTree: neighbours closer than the bound
+            d[far], j[far] = np.inf, self.n
+            if k_found < k:
+                d = np.pad(d, ((0, 0), (0, k - k_found)), constant_values=np.inf)
+                j = np.pad(j, ((0, 0), (0, k - k_found)), constant_values=self.n)
+        return (d[:, 0], j[:, 0]) if k == 1 else (d, j)
+
+
 def _covariances_of(nb: np.ndarray, w: np.ndarray) -> np.ndarray:
     """(n, 3, 3) eq. (1) of neighbour sets nb (n, K, 3) with 0/1 weights w (n, K)."""
     cnt = w.sum(axis=1)
@@ -187,7 +220,7 @@ def _span_scan_lines(
     idx: np.ndarray,
     rows: np.ndarray,
     labels: np.ndarray,
-    tree: cKDTree,
+    tree: cKDTree | KnnTree,
     span_distance: float,
     threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -311,7 +344,7 @@ def estimate_covariances(
         if idx.shape != (len(query), k_eff):
             raise RegistrationError(f"neighbours must be ({len(query)}, {k_eff}), got {idx.shape}")
     else:
-        tree = cKDTree(xyz) if tree is None else tree
+        tree = KnnTree(xyz) if tree is None else tree
         _, idx = tree.query(query, k=k_eff, workers=_workers(len(query), threads))
     if reference:
         nb = xyz[idx.reshape(len(query), k_eff)]
@@ -331,7 +364,7 @@ def estimate_covariances(
                 idx.reshape(len(query), k_eff),
                 np.flatnonzero(single),
                 np.asarray(labels),
-                tree,
+                KnnTree(xyz) if tree is None else tree,
                 span_distance,
                 threads,
             )
@@ -439,6 +472,7 @@ def solve_weighted(
     residual_dims: int = 3,
     min_inliers: int = 6,
     reference: bool = False,
+    predict_convergence: bool = False,
 ) -> RegistrationResult:
     """Gauss-Newton / Levenberg-Marquardt on SE(3) with re-association every iteration.
 
@@ -449,6 +483,13 @@ def solve_weighted(
     relative. ``residual_dims`` counts scalar residuals per correspondence (for dof).
     reference: build H, b and the cost with the numpy reference (``_linearise`` / ``_cost``)
     instead of the compiled kernels (``slam.registration.kernels``, same numbers).
+    predict_convergence: stop ("step") as well when the last two accepted steps contract
+    (ratio r < 1/2 of their sizes, rotation and translation each) and the tail still to come,
+    |xi| r / (1 - r), is below the transformation epsilon in both: the solution is then
+    within the epsilon of where the iteration converges, and the association and
+    linearisation that would only measure the next, smaller step are saved (64-beam
+    scan-to-map: 3.05 -> ~2.3 associations per frame). The Hessian returned is the one of
+    the last association, as with the plain step test.
     """
     lin, cost_of = (_linearise, _cost) if reference else (kernels.linearise, kernels.cost)
     T = np.asarray(init_T, dtype=np.float64).copy()
@@ -464,6 +505,20 @@ def solve_weighted(
             float(xi[:3] @ xi[:3]) < transformation_epsilon
             and float(xi[3:] @ xi[3:]) < transformation_epsilon
         )
+
+    def tail_small(xi: np.ndarray, prev: np.ndarray | None) -> bool:
+        if prev is None:
+            return False
+        for part in (slice(0, 3), slice(3, 6)):
+            now, before = float(np.linalg.norm(xi[part])), float(np.linalg.norm(prev[part]))
+            if now == 0.0:
+                continue
+            r = now / before if before > 0 else 1.0
+            if r >= 0.5 or (now * r / (1.0 - r)) ** 2 >= transformation_epsilon:
+                return False
+        return True
+
+    prev_xi = None
 
     for it in range(1, max_iterations + 1):
         iterations = it
@@ -502,9 +557,10 @@ def solve_weighted(
             # was already below the epsilon (rounding), else stuck short of it
             reason = "step" if first_step is not None and small(first_step) else "stalled"
             break
-        if small(xi):
+        if small(xi) or (predict_convergence and tail_small(xi, prev_xi)):
             reason = "step"
             break
+        prev_xi = xi
     fitness = float(sqd.mean()) if len(sqd) else float("inf")
     return RegistrationResult(
         T_target_source=T,
@@ -588,4 +644,5 @@ def gicp_align(
         transformation_epsilon=cfg.transformation_epsilon,
         fitness_epsilon=cfg.fitness_epsilon,
         reference=reference,
+        predict_convergence=cfg.predict_convergence,
     )
