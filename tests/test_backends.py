@@ -121,7 +121,8 @@ def test_isam2_keeps_every_factor_and_value_and_single_pose_lookup():
 
 
 def test_isam2_extra_updates_after_loop_improve_convergence():
-    # measured: 5.3e-3 m from batch without extra updates, 2.3e-5 m with the default 3
+    # measured: 5.3e-3 m from batch without extra updates, 2.3e-5 m with the default 1 (and
+    # the same with 3: the later ones only repeat the cost)
     _, factors, initial = square_problem()
     batch = run(
         BatchBackend(BatchConfig(relative_error_tol=1e-12, absolute_error_tol=1e-12)),
@@ -129,10 +130,10 @@ def test_isam2_extra_updates_after_loop_improve_convergence():
         initial,
     )
     gaps = {}
-    for extra in (0, 3):
+    for extra in (0, 1, 3):
         backend = Isam2Backend(Isam2Config(extra_updates_after_loop=extra))
         gaps[extra] = np.abs(positions(run(backend, factors, initial)) - positions(batch)).max()
-    assert gaps[3] < 1e-4
+    assert gaps[1] < 1e-4 and gaps[3] < 1e-4
     assert gaps[0] > 1e-3
 
 
