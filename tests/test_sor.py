@@ -191,3 +191,33 @@ def test_weighted_terms_kernel_equals_numpy_reference(seed):
         assert fast.mu == pytest.approx(ref.mu, rel=1e-12)
         assert fast.sigma == pytest.approx(ref.sigma, rel=1e-12)
         assert np.array_equal(fast.d <= fast.theta, ref.d <= ref.theta)
+
+
+def test_vectorised_exp_within_one_ulp_of_numpy():
+    """exp_neg (the SIMD exp of eq. (4)) against np.exp over the whole range of weights."""
+    from slam.preprocess.sor_kernels import exp_neg
+
+    x = np.r_[np.linspace(0.0, 50.0, 200_001), np.geomspace(50.0, 800.0, 1001), 1e-300, 0.0]
+    w = np.empty(len(x))
+    exp_neg(x, 1.0, w, np.empty(len(x), dtype=np.int64))
+    ref = np.exp(-x)
+    normal = ref >= np.finfo(float).tiny
+    assert np.max(np.abs(w[normal] - ref[normal]) / np.spacing(ref[normal])) <= 1.0
+    assert np.all(w[~normal] <= np.finfo(float).tiny) and w[-1] == 1.0
+    w3 = np.empty(3)
+    exp_neg(np.array([1.0, 2.0, 4.0]), 0.5, w3, np.empty(3, dtype=np.int64))
+    np.testing.assert_allclose(w3, np.exp([-0.5, -1.0, -2.0]), rtol=2e-16)
+
+
+def test_simd_and_libm_kernels_same_keep_mask(scan):
+    """The vectorised-exp kernel (used) and the libm-exp kernel (the earlier one) agree."""
+    from slam.preprocess.sor import knn_distances
+    from slam.preprocess.sor_kernels import weighted_sor_kernel, weighted_sor_kernel_simd
+
+    xyz, _ = scan
+    dist = np.ascontiguousarray(knn_distances(xyz, 10))
+    a = weighted_sor_kernel(dist, 1.0, 1e-5, 1.0)
+    b = weighted_sor_kernel_simd(dist, 1.0, 1e-5, 1.0)
+    np.testing.assert_allclose(b[0], a[0], rtol=1e-14, atol=0)
+    assert abs(b[1] - a[1]) <= 1e-14 * a[1] and abs(b[2] - a[2]) <= 1e-13 * a[2]
+    assert np.array_equal(a[0] <= a[4], b[0] <= b[4])
