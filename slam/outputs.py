@@ -68,17 +68,21 @@ def _window_mean_ms(seconds: Any, first: bool, n: int = 100) -> float | None:
     return round(1e3 * float(part.mean()), 3)
 
 
-def stage_window_ms(pipeline: Pipeline, first: bool, n: int = 100) -> dict[str, float]:
+def stage_window_ms(
+    pipeline: Pipeline, first: bool, n: int = 100, cpu: bool = False
+) -> dict[str, float]:
     """Mean ms per frame of every stage over the first or last ``n`` frames (a stage that did
     not run on a frame counts 0 there), plus ``other``: the rest of the frame's step (the
-    pipeline's own bookkeeping). Compared start vs end, it shows which stage grows."""
+    pipeline's own bookkeeping). Compared start vs end, it shows which stage grows.
+    ``cpu``: CPU ms of this process instead of wall ms."""
     st = pipeline.state
     out: dict[str, float] = {}
-    frames = np.asarray(st.frame_seconds, dtype=float)
+    frames = np.asarray(st.frame_cpu_seconds if cpu else st.frame_seconds, dtype=float)
     if len(frames) == 0:
         return out
     rest = frames.copy()
-    for stage, series in st.stage_frame_seconds.items():
+    stages = st.stage_frame_cpu_seconds if cpu else st.stage_frame_seconds
+    for stage, series in stages.items():
         values = np.asarray(series, dtype=float)
         out[stage] = _window_mean_ms(values, first, n)
         m = min(len(values), len(rest))
@@ -156,9 +160,14 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         "frame_ms_first100": _window_mean_ms(st.frame_seconds, first=True),
         "frame_ms_last100": _window_mean_ms(st.frame_seconds, first=False),
         "frame_ms_max": round(1e3 * max(st.frame_seconds), 3) if st.frame_seconds else None,
+        # CPU ms of this process per frame (start vs end): independent of the machine's load
+        "frame_cpu_ms_first100": _window_mean_ms(st.frame_cpu_seconds, first=True),
+        "frame_cpu_ms_last100": _window_mean_ms(st.frame_cpu_seconds, first=False),
         # the same split by stage (ms per frame; "other": the pipeline's own bookkeeping)
         "stage_ms_first100": stage_window_ms(pipeline, first=True),
         "stage_ms_last100": stage_window_ms(pipeline, first=False),
+        "stage_cpu_ms_first100": stage_window_ms(pipeline, first=True, cpu=True),
+        "stage_cpu_ms_last100": stage_window_ms(pipeline, first=False, cpu=True),
         # back-end update per keyframe (ms): mean over the first / last 100 keyframes, max
         "backend_ms_first100": _window_mean_ms(st.backend_seconds, first=True),
         "backend_ms_last100": _window_mean_ms(st.backend_seconds, first=False),

@@ -74,11 +74,15 @@ class RunState:
     # per-frame wall time (s) of step() and back-end update time (s) per keyframe: compact
     # arrays (8 bytes an entry), so that metrics can compare the start and end of a run
     frame_seconds: array = field(default_factory=lambda: array("d"))
+    # the same step's CPU seconds of this process (all its threads, not worker processes):
+    # on a shared machine the wall time is partly waiting for a core, the CPU time is not
+    frame_cpu_seconds: array = field(default_factory=lambda: array("d"))
     backend_seconds: array = field(default_factory=lambda: array("d"))
     stage_max_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     # per-frame seconds of each stage (front end, each factor plugin, back end; 0 on frames
     # where a stage did not run), aligned with frame_seconds: where a run's time grows
     stage_frame_seconds: dict[str, array] = field(default_factory=dict)
+    stage_frame_cpu_seconds: dict[str, array] = field(default_factory=dict)  # CPU s, the same
     path_length: float = 0.0  # odometric distance travelled (m), summed frame to frame
     # (peak memory MiB, path length m) after MEMORY_REFERENCE_FRAME frames: the growth of the
     # peak from there per km travelled is metrics.json's memory_mb_per_km
@@ -173,6 +177,7 @@ class Pipeline:
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
+        self._frame_stages_cpu: dict[str, float] = {}  # CPU seconds of the same
         self.view = GraphView(self.state.keyframes, self._estimate)
 
     # ------------------------------------------------------------------ graph view
@@ -244,9 +249,9 @@ class Pipeline:
         """Process one scan through front end, factor plugins and back end (O(1) per frame:
         nothing here scans the frames or keyframes so far)."""
         st = self.state
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         odom = self.frontend.process(scan)
-        self._timed("frontend", time.perf_counter() - t0)
+        self._timed("frontend", time.perf_counter() - t0, time.process_time() - c0)
         if odom.extras.get("skipped"):
             st.skipped_frames += 1
         if odom.extras.get("degenerate"):
@@ -264,29 +269,33 @@ class Pipeline:
         st.frame_kf.append(kf.id)
         st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, pose))
         st.frame_seconds.append(time.perf_counter() - t0)
+        st.frame_cpu_seconds.append(time.process_time() - c0)
         self._close_frame_stages()
         if st.frames == MEMORY_REFERENCE_FRAME:
             from slam.outputs import peak_memory_mb
 
             st.memory_reference = (peak_memory_mb(), st.path_length)
 
-    def _timed(self, stage: str, seconds: float) -> None:
+    def _timed(self, stage: str, seconds: float, cpu: float = 0.0) -> None:
         st = self.state
         st.stage_seconds[stage] += seconds
         st.stage_max_seconds[stage] = max(st.stage_max_seconds[stage], seconds)
         self._frame_stages[stage] = self._frame_stages.get(stage, 0.0) + seconds
+        self._frame_stages_cpu[stage] = self._frame_stages_cpu.get(stage, 0.0) + cpu
 
     def _close_frame_stages(self) -> None:
         """Append this frame's seconds per stage to ``state.stage_frame_seconds`` (0 for a
         stage that did not run; a stage seen for the first time is 0 on earlier frames)."""
         st = self.state
         n = len(st.frame_seconds)
-        for stage in self._frame_stages:
-            if stage not in st.stage_frame_seconds:
-                st.stage_frame_seconds[stage] = array("d", bytes(8 * (n - 1)))
-        for stage, series in st.stage_frame_seconds.items():
-            series.append(self._frame_stages.get(stage, 0.0))
-        self._frame_stages = {}
+        for per_frame, out in ((self._frame_stages, st.stage_frame_seconds),
+                               (self._frame_stages_cpu, st.stage_frame_cpu_seconds)):  # fmt: skip
+            for stage in per_frame:
+                if stage not in out:
+                    out[stage] = array("d", bytes(8 * (n - 1)))
+            for stage, series in out.items():
+                series.append(per_frame.get(stage, 0.0))
+        self._frame_stages, self._frame_stages_cpu = {}, {}
 
     def _add_keyframe(self, scan: Scan, odom: Any) -> None:
         st = self.state
@@ -301,29 +310,29 @@ class Pipeline:
             cloud=keyframe_cloud(odom.cloud),
             extras=scalar_extras(odom.extras),
         )
-        t_guess = time.perf_counter()  # the estimate look-up is back-end time too
+        t_guess, c_guess = time.perf_counter(), time.process_time()  # back-end time too
         if kf_id == 0:
             initial_T = kf.pose_odom
         else:
             initial_T = self._estimate(kf_id - 1) @ kf.relative
-        t_guess = time.perf_counter() - t_guess
+        t_guess, c_guess = time.perf_counter() - t_guess, time.process_time() - c_guess
         st.keyframes.append(kf)
         self._pending = (kf_id, initial_T)
         factors: list[Any] = []
         loop_closed = False
         for source in self.factor_sources:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             new = list(source.plugin.on_keyframe(kf, self.view))
-            self._timed(f"factor:{source.name}", time.perf_counter() - t0)
+            self._timed(f"factor:{source.name}", time.perf_counter() - t0, time.process_time() - c0)
             st.factor_counts[source.name] += len(new)
             if new and source.is_loop:
                 loop_closed = True
                 st.loops_closed += len(new)
             factors.extend(new)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         self.backend.update(factors, {kf_id: pose3(initial_T)}, loop_closed=loop_closed)
         dt = time.perf_counter() - t0 + t_guess
-        self._timed("backend", dt)
+        self._timed("backend", dt, time.process_time() - c0 + c_guess)
         st.backend_seconds.append(dt)
         self._estimate_cache = {}
         self._pending = None
