@@ -168,7 +168,7 @@ def test_query_after_evictions_is_exact_for_isolated_and_far_queries():
     tree = cKDTree(m.points)
     q = np.concatenate(
         [
-            m.points[::97] + rng.normal(0, 0.2, (len(m.points[::97]), 3)),
+            m.points[::50] + rng.normal(0, 0.2, (len(m.points[::50]), 3)),
             rng.uniform(-80, 120, (300, 3)),  # mostly isolated
             [[5000.0, 0, 0], [44.0, 0, 300.0]],  # far outside the map
         ]

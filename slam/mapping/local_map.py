@@ -38,7 +38,6 @@ _EMPTY = np.int64(-1)
 MAX_SHELLS = 2  # voxel shells scanned before a query goes on over coarse cells (or as many
 # as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
 MAX_BOUNDED_SHELLS = 4
-SORT_QUERIES = 256  # batches at least this large are queried in voxel order
 COARSE = 8  # voxels per side of a coarse cell (4 m with the default 0.5 m voxels)
 
 
@@ -117,6 +116,7 @@ class VoxelHashMap:
         self._vkey = np.zeros(0, dtype=np.int64)
         self._vcount = np.zeros(0, dtype=np.int64)
         self._vslots = np.zeros((0, cap), dtype=np.int64)
+        self._vpts = np.zeros((0, cap, 3))  # copies of the points, by voxel and slot
         self._vcell = np.zeros(0, dtype=np.int64)
         self._vprev = np.zeros(0, dtype=np.int64)
         self._vnext = np.zeros(0, dtype=np.int64)
@@ -177,7 +177,7 @@ class VoxelHashMap:
         self._pvox = _grown(self._pvox, n + n_more)
         self._pslot = _grown(self._pslot, n + n_more)
         if len(self._vkey) < nv + n_more:
-            for name in ("_vkey", "_vcount", "_vslots", "_vcell", "_vprev", "_vnext"):
+            for name in ("_vkey", "_vcount", "_vslots", "_vpts", "_vcell", "_vprev", "_vnext"):
                 setattr(self, name, _grown(getattr(self, name), nv + n_more))
         if len(self._tkeys) < 2 * (nv + n_more):
             self._tkeys, self._tvals = _table(nv + n_more)
@@ -196,12 +196,14 @@ class VoxelHashMap:
         accepted = np.empty(len(keys), dtype=np.int64)
         n_acc = K.insert(
             keys,
+            points,
             COARSE,
             self._tkeys,
             self._tvals,
             self._vkey,
             self._vcount,
             self._vslots,
+            self._vpts,
             self._vcell,
             self._vprev,
             self._vnext,
@@ -236,7 +238,7 @@ class VoxelHashMap:
         points accepts the first (cap - c) new points falling in it; the accepted points are
         appended, so they are the last ``added`` rows.
         """
-        points = np.asarray(points, dtype=np.float64)
+        points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InputError(f"map points must be (N, 3), got {points.shape}")
         if self.with_covariances:
@@ -273,6 +275,7 @@ class VoxelHashMap:
             self._vkey,
             self._vcount,
             self._vslots,
+            self._vpts,
             self._vcell,
             self._vprev,
             self._vnext,
@@ -304,17 +307,13 @@ class VoxelHashMap:
 
         Returns (distances m, indices), shape (N,) for k == 1 else (N, k), ascending;
         neighbours beyond ``distance_upper_bound`` (or missing) are inf / ``len(self)``.
-        ``workers`` is accepted for compatibility (the kernel runs on one thread).
+        ``workers`` is accepted for compatibility (the kernel runs on one thread: on two
+        shared cores the thread start-up of a few thousand queries costs more than it saves).
         """
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
         k = int(k)
         if k < 1:
             raise InputError(f"k must be >= 1, got {k}")
-        order = None
-        if len(x) >= SORT_QUERIES and np.isfinite(x).all():
-            # queries in voxel-key order: consecutive queries share voxels (cache hits)
-            order = np.argsort(voxel_hash(x, self.cfg.voxel_size), kind="stable")
-            x = x[order]
         od = np.empty((len(x), k))
         oi = np.empty((len(x), k), dtype=np.int64)
         bound = float(distance_upper_bound)
@@ -323,31 +322,46 @@ class VoxelHashMap:
         if np.isfinite(bound):
             need = int(np.ceil(bound / self.cfg.voxel_size))
             shells = min(max(shells, need), MAX_BOUNDED_SHELLS)
+        unresolved = np.zeros(len(x), dtype=np.bool_)
+        voxel = float(self.cfg.voxel_size)
         K.query(
             x,
             k,
             max_d2,
-            float(self.cfg.voxel_size),
+            voxel,
             shells,
-            COARSE,
             self._tkeys,
             self._tvals,
             self._vcount,
             self._vslots,
-            self._ctkeys,
-            self._ctvals,
-            self._chead,
-            self._vnext,
-            self._vkey,
-            self._pts,
+            self._vpts,
             self._state,
             od,
             oi,
+            unresolved,
         )
+        rows = np.flatnonzero(unresolved)
+        if len(rows):  # isolated points (sparse far returns): on over the coarse cells
+            K.query_coarse(
+                x,
+                rows,
+                max_d2,
+                voxel,
+                shells,
+                COARSE,
+                self._ctkeys,
+                self._ctvals,
+                self._chead,
+                self._vnext,
+                self._vkey,
+                self._vcount,
+                self._vslots,
+                self._vpts,
+                self._state,
+                od,
+                oi,
+            )
         d = np.sqrt(od)
-        if order is not None:
-            d[order] = d.copy()
-            oi[order] = oi.copy()
         if k == 1:
             return d[:, 0], oi[:, 0]
         return d, oi

@@ -81,12 +81,14 @@ def _coarse_key(key, b):
 @njit(cache=True)
 def insert(
     keys,
+    points,
     b,
     tkeys,
     tvals,
     vkey,
     vcount,
     vslots,
+    vpts,
     vcell,
     vprev,
     vnext,
@@ -145,6 +147,8 @@ def insert(
         if cnt < cap:
             r = n0 + n_acc
             vslots[v, cnt] = r
+            for a in range(3):
+                vpts[v, cnt, a] = points[i, a]
             vcount[v] = cnt + 1
             pkeys[r] = key
             pvox[r] = v
@@ -192,6 +196,7 @@ def _remove_voxel(
     vkey,
     vcount,
     vslots,
+    vpts,
     vcell,
     vprev,
     vnext,
@@ -220,6 +225,7 @@ def _remove_voxel(
         vcount[v] = vcount[w]
         for s in range(vcount[w]):
             vslots[v, s] = vslots[w, s]
+            vpts[v, s] = vpts[w, s]
             pvox[vslots[v, s]] = v
         vcell[v] = vcell[w]
         vprev[v] = vprev[w]
@@ -245,6 +251,7 @@ def remove_far(
     vkey,
     vcount,
     vslots,
+    vpts,
     vcell,
     vprev,
     vnext,
@@ -313,6 +320,7 @@ def remove_far(
         last = vcount[v] - 1
         moved = vslots[v, last]
         vslots[v, p] = moved
+        vpts[v, p] = vpts[v, last]
         pslot[moved] = p
         vcount[v] = last
         if last == 0:
@@ -323,6 +331,7 @@ def remove_far(
                 vkey,
                 vcount,
                 vslots,
+                vpts,
                 vcell,
                 vprev,
                 vnext,
@@ -374,16 +383,16 @@ def _push(bd, bi, d2, j):
 
 
 @njit(cache=True)
-def _scan_voxel(v, vcount, vslots, pts, qx, qy, qz, max_d2, bd, bi):
+def _scan_voxel(v, vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi):
+    """Offer the points of voxel v (their copies in ``vpts``: contiguous, no row gathers)."""
     last = len(bd) - 1
     for c in range(vcount[v]):
-        j = vslots[v, c]
-        ex = pts[j, 0] - qx
-        ey = pts[j, 1] - qy
-        ez = pts[j, 2] - qz
+        ex = vpts[v, c, 0] - qx
+        ey = vpts[v, c, 1] - qy
+        ez = vpts[v, c, 2] - qz
         d2 = ex * ex + ey * ey + ez * ez
         if d2 < bd[last] and d2 <= max_d2:
-            _push(bd, bi, d2, j)
+            _push(bd, bi, d2, vslots[v, c])
 
 
 @njit(cache=True)
@@ -411,7 +420,7 @@ def _coarse_search(
     vkey,
     vcount,
     vslots,
-    pts,
+    vpts,
     state,
     bd,
     bi,
@@ -469,7 +478,7 @@ def _coarse_search(
                             ez = _gap((vz - OFF) * voxel, qz, voxel)
                             e2 = ex * ex + ey * ey + ez * ez
                             if e2 <= max_d2 and e2 < bd[last]:
-                                _scan_voxel(v, vcount, vslots, pts, qx, qy, qz, max_d2, bd, bi)
+                                _scan_voxel(v, vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi)
                         v = vnext[v]
         # every point closer than r lies in the coarse cells visited so far
         r = min(
@@ -485,111 +494,131 @@ def _coarse_search(
 
 
 @njit(cache=True)
+def _query_one(
+    i, q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi
+):
+    """Query i (see ``query``) over the voxel shells into od[i], oi[i]; False if unsettled."""
+    n = state[N]
+    lim = 2 * OFF
+    last = k - 1
+    bd = od[i]
+    bi = oi[i]
+    for m in range(k):
+        bd[m] = np.inf
+        bi[m] = n
+    if n == 0:
+        return True
+    qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
+    cx = np.int64(np.floor(qx / voxel))
+    cy = np.int64(np.floor(qy / voxel))
+    cz = np.int64(np.floor(qz / voxel))
+    fx0, fx1 = qx - cx * voxel, (cx + 1) * voxel - qx
+    fy0, fy1 = qy - cy * voxel, (cy + 1) * voxel - qy
+    fz0, fz1 = qz - cz * voxel, (cz + 1) * voxel - qz
+    face = min(fx0, fx1, fy0, fy1, fz0, fz1)
+    cxo, cyo, czo = cx + OFF, cy + OFF, cz + OFF
+    for s in range(max_shells + 1):
+        for dx in range(-s, s + 1):
+            x = cxo + dx
+            if x < 0 or x >= lim:
+                continue
+            gx = _gap((cx + dx) * voxel, qx, voxel)
+            gx2 = gx * gx
+            if gx2 > max_d2 or gx2 >= bd[last]:
+                continue
+            for dy in range(-s, s + 1):
+                y = cyo + dy
+                if y < 0 or y >= lim:
+                    continue
+                gy = _gap((cy + dy) * voxel, qy, voxel)
+                gxy2 = gx2 + gy * gy
+                if gxy2 > max_d2 or gxy2 >= bd[last]:
+                    continue
+                edge = abs(dx) == s or abs(dy) == s
+                step = 1 if edge else max(2 * s, 1)
+                for dz in range(-s, s + 1, step):
+                    z = czo + dz
+                    if z < 0 or z >= lim:
+                        continue
+                    gz = _gap((cz + dz) * voxel, qz, voxel)
+                    g2 = gxy2 + gz * gz
+                    if g2 > max_d2 or g2 >= bd[last]:
+                        continue
+                    h = slot(tkeys, (x << 42) | (y << 21) | z)
+                    if tkeys[h] == -1:
+                        continue
+                    _scan_voxel(tvals[h], vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi)
+        r = face + s * voxel  # every point closer than r has been seen
+        if bd[last] <= r * r or max_d2 <= r * r:
+            return True
+    return False
+
+
+@njit(cache=True)
 def query(
+    q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi, unresolved
+):
+    """Exact k-NN (squared distances) of each query among the map points, over the voxel
+    shells outwards from the query's voxel (a voxel whose box is farther than the current
+    k-th neighbour, or the bound, is not opened). A query not settled within ``max_shells``
+    shells (an isolated point: sparse far returns) is flagged in ``unresolved`` with its
+    partial answer, for ``query_coarse``. Missing neighbours: inf / n.
+    """
+    for i in range(len(q)):
+        settled = _query_one(
+            i, q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi
+        )
+        unresolved[i] = not settled
+
+
+@njit(cache=True)
+def query_coarse(
     q,
-    k,
+    rows,
     max_d2,
     voxel,
     max_shells,
     b,
-    tkeys,
-    tvals,
-    vcount,
-    vslots,
     ctkeys,
     ctvals,
     chead,
     vnext,
     vkey,
-    pts,
+    vcount,
+    vslots,
+    vpts,
     state,
     od,
     oi,
 ):
-    """Exact k-NN (squared distances) of each query among the map points.
-
-    Voxel shells outwards from the query's voxel (a voxel whose box is farther than the
-    current k-th neighbour, or the bound, is not opened); a query not settled within
-    ``max_shells`` shells (an isolated point: sparse far returns) goes on over coarse cells.
-    Missing neighbours: inf / n.
-    """
-    n = state[N]
-    lim = 2 * OFF
-    last = k - 1
-    for i in range(len(q)):
-        bd = od[i]
-        bi = oi[i]
-        for m in range(k):
-            bd[m] = np.inf
-            bi[m] = n
-        if n == 0:
-            continue
+    """Finish the queries ``rows`` that ``query`` left unsettled, over coarse cells (a
+    separate pass: inside the shell loop the rarely taken branch slowed every query)."""
+    for t in range(len(rows)):
+        i = rows[t]
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
-        cx = np.int64(np.floor(qx / voxel))
-        cy = np.int64(np.floor(qy / voxel))
-        cz = np.int64(np.floor(qz / voxel))
-        fx0, fx1 = qx - cx * voxel, (cx + 1) * voxel - qx
-        fy0, fy1 = qy - cy * voxel, (cy + 1) * voxel - qy
-        fz0, fz1 = qz - cz * voxel, (cz + 1) * voxel - qz
-        face = min(fx0, fx1, fy0, fy1, fz0, fz1)
-        cxo, cyo, czo = cx + OFF, cy + OFF, cz + OFF
-        done = False
-        for s in range(max_shells + 1):
-            for dx in range(-s, s + 1):
-                x = cxo + dx
-                if x < 0 or x >= lim:
-                    continue
-                gx = _gap((cx + dx) * voxel, qx, voxel)
-                gx2 = gx * gx
-                if gx2 > max_d2 or gx2 >= bd[last]:
-                    continue
-                for dy in range(-s, s + 1):
-                    y = cyo + dy
-                    if y < 0 or y >= lim:
-                        continue
-                    gy = _gap((cy + dy) * voxel, qy, voxel)
-                    gxy2 = gx2 + gy * gy
-                    if gxy2 > max_d2 or gxy2 >= bd[last]:
-                        continue
-                    edge = abs(dx) == s or abs(dy) == s
-                    step = 1 if edge else max(2 * s, 1)
-                    for dz in range(-s, s + 1, step):
-                        z = czo + dz
-                        if z < 0 or z >= lim:
-                            continue
-                        gz = _gap((cz + dz) * voxel, qz, voxel)
-                        g2 = gxy2 + gz * gz
-                        if g2 > max_d2 or g2 >= bd[last]:
-                            continue
-                        h = slot(tkeys, (x << 42) | (y << 21) | z)
-                        if tkeys[h] == -1:
-                            continue
-                        _scan_voxel(tvals[h], vcount, vslots, pts, qx, qy, qz, max_d2, bd, bi)
-            r = face + s * voxel  # every point closer than r has been seen
-            if bd[last] <= r * r or max_d2 <= r * r:
-                done = True
-                break
-        if not done:
-            _coarse_search(
-                qx,
-                qy,
-                qz,
-                cxo,
-                cyo,
-                czo,
-                max_shells,
-                max_d2,
-                voxel,
-                b,
-                ctkeys,
-                ctvals,
-                chead,
-                vnext,
-                vkey,
-                vcount,
-                vslots,
-                pts,
-                state,
-                bd,
-                bi,
-            )
+        cxo = np.int64(np.floor(qx / voxel)) + OFF
+        cyo = np.int64(np.floor(qy / voxel)) + OFF
+        czo = np.int64(np.floor(qz / voxel)) + OFF
+        _coarse_search(
+            qx,
+            qy,
+            qz,
+            cxo,
+            cyo,
+            czo,
+            max_shells,
+            max_d2,
+            voxel,
+            b,
+            ctkeys,
+            ctvals,
+            chead,
+            vnext,
+            vkey,
+            vcount,
+            vslots,
+            vpts,
+            state,
+            od[i],
+            oi[i],
+        )
