@@ -183,3 +183,23 @@ def test_box_search_completes_uncertified_rows_exactly(name, budget, request):
     # the earlier fallback (a KD-tree over the whole scan) gives the same rows
     idx, dist = self_knn(xyz, K, ring=ring, fallback="kdtree")
     assert np.abs(dist - res.dist).max() <= 1e-12
+
+
+def test_scratch_reuse_never_aliases_results(corridor, urban64):
+    """Scratch buffers are reused from call to call and per thread: earlier results stay
+    intact, and scans searched in parallel threads get their own answers."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    (xa, ra), (xb, rb) = corridor, urban64
+    a = range_image_knn(xa, ra, K, complete=True)
+    a_idx, a_dist = a.idx.copy(), a.dist.copy()
+    b = range_image_knn(xb, rb, K, complete=True)  # larger: the buffers grow
+    a2 = range_image_knn(xa[:5000], ra[:5000], K, complete=True)  # smaller: views of them
+    assert np.array_equal(a.idx, a_idx) and np.array_equal(a.dist, a_dist)
+    with ThreadPoolExecutor(2) as pool:
+        futs = [
+            pool.submit(range_image_knn, x, r, K, complete=True) for x, r in (corridor, urban64)
+        ]
+        ta, tb = (f.result() for f in futs)
+    assert np.array_equal(ta.dist, a_dist) and np.array_equal(tb.dist, b.dist)
+    assert np.array_equal(a2.dist, range_image_knn(xa[:5000], ra[:5000], K, complete=True).dist)

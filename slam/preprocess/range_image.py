@@ -22,12 +22,19 @@ keep-masks identical; 99.3-99.8 % of the points certified by the window.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from slam.errors import InputError
-from slam.preprocess.range_image_kernels import box_knn, range_image, ring_ranks, window_knn
+from slam.preprocess.range_image_kernels import (
+    box_knn,
+    range_image_into,
+    ring_ranks,
+    scatter_rows,
+    window_knn,
+)
 
 __all__ = ["RangeImageKnn", "range_image_knn", "ring_ranks"]
 
@@ -39,6 +46,27 @@ MAX_VISITS = 400  # distance evaluations per point before it is left to the KD-t
 MAX_RING_SPREAD = np.radians(1.0)
 # Above this share of uncertified points the box search is left to the caller's KD-tree
 MAX_UNCERTIFIED = 0.25
+
+
+class _Buffers(threading.local):
+    """Per-thread scratch arrays of ``range_image_knn``, grown as needed and reused from scan
+    to scan: freshly mapped pages cost a third of a 16-beam scan's SOR time (page faults and
+    zeroing, measured with perf). Holds ~60 bytes per point, plus 170 for scans that are not
+    stored ring by ring; never returned to callers."""
+
+    def __init__(self) -> None:
+        self.store: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: int | tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        size = int(np.prod(shape))
+        a = self.store.get(name)
+        if a is None or a.size < size:
+            a = np.empty(size + size // 8, dtype=dtype)
+            self.store[name] = a
+        return a[:size].reshape(shape)
+
+
+_BUFFERS = _Buffers()
 
 
 @dataclass(frozen=True)
@@ -88,7 +116,15 @@ def range_image_knn(
     ring = ring.astype(np.int64, copy=False)
     if int(ring.max()) - int(ring.min()) > 1 << 16:  # sparse labels: compact them first
         ring = np.unique(ring, return_inverse=True)[1].astype(np.int64)
-    order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread = range_image(xyz, ring)
+    buf = _BUFFERS
+    order = buf.get("order", n, np.int64)
+    xyz_s = buf.get("xyz", (n, 3))
+    rng, el_s, az_s = buf.get("rng", n), buf.get("el_s", n), buf.get("az_s", n)
+    cx, cy = buf.get("cx", n), buf.get("cy", n)
+    start, lo, hi, spread = range_image_into(
+        xyz, ring, buf.get("az", n), buf.get("el", n), buf.get("rank", n, np.int64), order,
+        xyz_s, rng, el_s, az_s, cx, cy,
+    )  # fmt: skip
     idx = np.empty((n, k + 1), dtype=np.int64)
     dist = np.empty((n, k))
     certified = np.empty(n, dtype=np.bool_)
@@ -101,20 +137,24 @@ def range_image_knn(
         return RangeImageKnn(idx, dist, certified, visits)
     # stored ring by ring (most steps of the order +-1): rows written in place, else sorted
     in_place = n < 2 or np.count_nonzero(np.abs(np.diff(order)) == 1) > n // 2
+    if in_place:
+        rows = idx, dist, certified, visits
+    else:  # rows in sorted order into scratch, scattered to the input order at the end
+        rows = (
+            buf.get("idx_s", (n, k + 1), np.int64),
+            buf.get("dist_s", (n, k)),
+            buf.get("cert_s", n, np.bool_),
+            buf.get("visits_s", n, np.int64),
+        )
     window_knn(
-        xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits,
-        idx, dist, certified, visits, in_place,
+        xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, max_visits, *rows, in_place
     )  # fmt: skip
     done = False
     if complete:
-        bad = np.flatnonzero(~(certified[order] if in_place else certified))  # sorted positions
+        bad = np.flatnonzero(~(certified[order] if in_place else rows[2]))  # sorted positions
         if len(bad) <= MAX_UNCERTIFIED * n:
-            box_knn(xyz_s, order, bad, k, idx, dist, in_place)
+            box_knn(xyz_s, order, bad, k, rows[0], rows[1], in_place)
             done = True
-    if in_place:
-        return RangeImageKnn(idx, dist, certified, visits, done)
-    inv = np.empty(n, dtype=np.int64)  # sorted rows back to the input order (a gather)
-    inv[order] = np.arange(n)
-    return RangeImageKnn(
-        idx.take(inv, axis=0), dist.take(inv, axis=0), certified[inv], visits[inv], done
-    )
+    if not in_place:
+        scatter_rows(order, *rows, idx, dist, certified, visits)
+    return RangeImageKnn(idx, dist, certified, visits, done)

@@ -17,8 +17,9 @@ H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at
 
 
 @njit(cache=True)
-def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarray, np.ndarray]:
-    """Order of the points by (ring rank, azimuth) and the ring offsets into it (n_rings + 1).
+def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int, order: np.ndarray) -> np.ndarray:
+    """Writes order (N,), the points by (ring rank, azimuth); returns the ring offsets into it
+    (n_rings + 1).
 
     A counting sort by ring, then each ring by azimuth; rings that arrive in (reversed,
     rotated) azimuth order, as most drivers store them, cost one pass instead of a sort."""
@@ -29,7 +30,6 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
     for j in range(n_rings):
         start[j + 1] += start[j]
     fill = start[:-1].copy()
-    order = np.empty(n, dtype=np.int64)
     for i in range(n):
         order[fill[rank[i]]] = i
         fill[rank[i]] += 1
@@ -59,7 +59,7 @@ def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int) -> tuple[np.ndarr
             order[b - t - 1 : b] = seg[: t + 1]
         else:
             order[a:b] = seg[np.argsort(az[seg], kind="mergesort")]
-    return order, start
+    return start
 
 
 @njit(cache=True, inline="always")
@@ -78,6 +78,13 @@ def _pseudo_azimuth(x: float, y: float) -> float:
 def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
     """(N,) rank of each point's ring among the rings present, ordered by their mean
     elevation el (rad), and the number of rings present. Any integer ring labels."""
+    rank = np.empty(len(ring), dtype=np.int64)
+    return rank, ring_ranks_into(ring, el, rank)
+
+
+@njit(cache=True)
+def ring_ranks_into(ring: np.ndarray, el: np.ndarray, rank: np.ndarray) -> int:
+    """``ring_ranks`` writing the ranks into rank (N,); returns the number of rings."""
     n = len(ring)
     r0 = ring.min()
     size = ring.max() - r0 + 1
@@ -90,10 +97,9 @@ def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
     means = sums[present] / counts[present]
     lut = np.zeros(size, dtype=np.int64)
     lut[present[np.argsort(means, kind="mergesort")]] = np.arange(len(present))
-    rank = np.empty(n, dtype=np.int64)
     for i in range(n):
         rank[i] = lut[ring[i] - r0]
-    return rank, len(present)
+    return len(present)
 
 
 @njit(cache=True)
@@ -104,20 +110,32 @@ def range_image(xyz: np.ndarray, ring: np.ndarray):
     direction, per-ring elevation range (rad), mean absolute deviation of the elevations
     from their ring's mean (rad). Rings ordered by mean elevation (``ring_ranks``)."""
     n = len(xyz)
-    az = np.empty(n)
-    el = np.empty(n)
-    for i in range(n):
-        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-        az[i] = _pseudo_azimuth(x, y)
-        el[i] = np.arctan2(z, np.sqrt(x * x + y * y))
-    rank, n_rings = ring_ranks(ring, el)
-    order, start = sort_rings(rank, az, n_rings)
+    order = np.empty(n, dtype=np.int64)
     xyz_s = np.empty((n, 3))
     rng = np.empty(n)
     el_s = np.empty(n)
     az_s = np.empty(n)
     cx = np.empty(n)
     cy = np.empty(n)
+    start, lo, hi, spread = range_image_into(
+        xyz, ring, np.empty(n), np.empty(n), np.empty(n, dtype=np.int64), order, xyz_s, rng,
+        el_s, az_s, cx, cy,
+    )  # fmt: skip
+    return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread
+
+
+@njit(cache=True)
+def range_image_into(xyz, ring, az, el, rank, order, xyz_s, rng, el_s, az_s, cx, cy):
+    """``range_image`` into caller-owned (N,) / (N, 3) buffers (reused from scan to scan:
+    fresh arrays cost page faults, a third of the time of a 16-beam scan's SOR); az, el and
+    rank are scratch. Returns (start, lo, hi, spread)."""
+    n = len(xyz)
+    for i in range(n):
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        az[i] = _pseudo_azimuth(x, y)
+        el[i] = np.arctan2(z, np.sqrt(x * x + y * y))
+    n_rings = ring_ranks_into(ring, el, rank)
+    start = sort_rings(rank, az, n_rings, order)
     lo = np.full(n_rings, np.inf)
     hi = np.full(n_rings, -np.inf)
     dev = 0.0  # sum |elevation - its ring's mean elevation|
@@ -143,7 +161,7 @@ def range_image(xyz: np.ndarray, ring: np.ndarray):
             mean /= start[j + 1] - start[j]
             for s in range(start[j], start[j + 1]):
                 dev += abs(el_s[s] - mean)
-    return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, dev / max(n, 1)
+    return start, lo, hi, dev / max(n, 1)
 
 
 @njit(cache=True, inline="always")
@@ -603,3 +621,17 @@ def box_knn(
         for t in range(k):
             out_dist[o, t] = np.sqrt(bd[t])
             out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
+
+
+@njit(cache=True)
+def scatter_rows(order, idx_s, dist_s, cert_s, visits_s, idx, dist, cert, visits) -> None:
+    """Rows in range-image order (row s is input point order[s]) to the input order."""
+    k = dist_s.shape[1]
+    for s in range(len(order)):
+        o = order[s]
+        for t in range(k):
+            dist[o, t] = dist_s[s, t]
+        for t in range(k + 1):
+            idx[o, t] = idx_s[s, t]
+        cert[o] = cert_s[s]
+        visits[o] = visits_s[s]
