@@ -9,6 +9,7 @@ from slam.preprocess.dynamics import (
     DynamicsConfig,
     cluster,
     cluster_stats,
+    dbscan,
     remove_dynamic,
 )
 from slam.preprocess.ground import fit_ground, split_ground
@@ -135,6 +136,10 @@ def test_simulated_plaza_pedestrians_removed_lamp_poles_kept():
         _, nonground = split_ground(scan.xyz, fit_ground(scan.xyz))
         xyz, dyn = scan.xyz[nonground], truth.dynamic[nonground]
         labels = cluster(xyz, cfg)
+        if k % 10 == 0:  # the scipy DBSCAN equals scikit-learn's, voxelled and point-wise
+            assert np.array_equal(labels, cluster(xyz, cfg, reference=True))
+            fine = DynamicsConfig(voxel=0.0)
+            assert np.array_equal(cluster(xyz, fine), cluster(xyz, fine, reference=True))
         T_prev_curr = np.eye(4) if T_prev is None else np.linalg.inv(T_prev) @ T
         keep, state = remove_dynamic(xyz, state, T_prev_curr, cfg, labels=labels)
         T_prev = T
@@ -154,3 +159,21 @@ def test_simulated_plaza_pedestrians_removed_lamp_poles_kept():
     assert dyn_rm / dyn_n > 0.75
     assert st_rm / st_n < 0.01
     assert pole_n > 100 and pole_rm / pole_n < 0.01
+
+
+def test_dbscan_core_border_noise_and_numbering():
+    """Two scan lines 0.74 m apart (cores: 17 points within eps), a point half-way between
+    them within eps of cores of both but itself not core (it takes the lower-numbered
+    cluster, as scikit-learn does) and isolated noise."""
+    from sklearn.cluster import DBSCAN
+
+    y = np.arange(-22, 23) * 0.045
+    line_b = np.column_stack([np.full(len(y), 0.74), y, np.zeros(len(y))])
+    line_a = np.column_stack([np.zeros(len(y)), y, np.zeros(len(y))])
+    pts = np.vstack([line_b, line_a, [[0.37, 0, 0]], [[5, 5, 5]], [[-5, 5, 5]]])
+    labels = dbscan(pts, 0.4, 17)
+    assert np.array_equal(labels, DBSCAN(eps=0.4, min_samples=17).fit_predict(pts))
+    n = len(y)
+    assert labels[0] == 0 and labels[n] == 1  # numbered by their first core point
+    assert labels[2 * n] == 0 and labels[2 * n + 1] == labels[2 * n + 2] == -1
+    assert np.array_equal(dbscan(np.zeros((0, 3)), 0.4, 5), np.zeros(0))

@@ -20,12 +20,20 @@ def _check_against_rebuilt(m: IncrementalMap, q: np.ndarray, k: int, r: float) -
     got = m.radius(q, r)
     for qi, want in enumerate(ref.query_ball_point(q, r)):
         assert sorted(got[qi].tolist()) == sorted(ids[want].tolist())
+    # bounded: the same neighbours where they lie within the bound, inf / -1 beyond it
+    db, ib = m.knn(q, k, distance_upper_bound=r)
+    inside = d_ref <= r
+    assert inside.any() and (~inside).any()
+    np.testing.assert_array_equal(ib, np.where(inside, id_ref, -1))
+    np.testing.assert_array_equal(db, np.where(inside, d_ref, np.inf))
 
 
-@pytest.mark.parametrize("merge_ratio", [1.0, 4.0])
-def test_knn_and_radius_equal_a_rebuilt_tree_through_inserts_deletes_restores(merge_ratio):
+@pytest.mark.parametrize(
+    ("merge_ratio", "index"), [(1.0, "buckets"), (4.0, "buckets"), (4.0, "merged")]
+)
+def test_knn_and_radius_equal_a_rebuilt_tree_through_inserts_deletes_restores(merge_ratio, index):
     rng = np.random.default_rng(0)
-    m = IncrementalMap(IncrementalMapConfig(merge_ratio=merge_ratio))
+    m = IncrementalMap(IncrementalMapConfig(merge_ratio=merge_ratio, index=index))
     q = rng.uniform(-12, 12, size=(300, 3))
     deleted = []
     for step in range(25):
@@ -40,6 +48,9 @@ def test_knn_and_radius_equal_a_rebuilt_tree_through_inserts_deletes_restores(me
         if step % 7 == 3 and deleted:  # re-insertion of earlier deletions
             m.restore(deleted.pop(0))
         _check_against_rebuilt(m, q, k=int(rng.integers(1, 9)), r=1.0)
+    if index == "merged":  # one tree, rebuilt once per change that a query followed
+        assert m.n_buckets == 0 and m.rebuilt_points <= 25 * len(m) * 2
+        return
     assert m.n_buckets <= 2 * int(np.log2(m.n_ids)) + 2
     # each point was put into a tree O(log N) times, not once per insert
     assert m.rebuilt_points < 3 * np.log2(m.n_ids) * m.n_ids

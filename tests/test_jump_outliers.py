@@ -84,6 +84,12 @@ def test_injected_spikes_are_dropped_on_simulated_scans(fixture, request):
             continue
         xyz, inten, r_sp, i_sp, clean = _inject(scan, k)
         keep = jump_outlier_mask(xyz, inten, scan.ring)
+        # the numba kernel equals the numpy reference, with and without intensity
+        assert np.array_equal(keep, jump_outlier_mask(xyz, inten, scan.ring, reference=True))
+        assert np.array_equal(
+            jump_outlier_mask(xyz, None, scan.ring),
+            jump_outlier_mask(xyz, None, scan.ring, reference=True),
+        )
         rates.append((keep[clean].mean(), (~keep[r_sp]).mean(), (~keep[i_sp]).mean()))
     clean_kept, range_found, intensity_found = np.min(rates, axis=0)
     print(

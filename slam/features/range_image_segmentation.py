@@ -100,31 +100,101 @@ class Segmentation:
         return int(self.label.max(initial=0))
 
 
-def infer_columns(azimuth: np.ndarray, ring: np.ndarray) -> int:
-    """Range-image width from the median azimuth step between consecutive returns of a beam."""
-    order = np.lexsort((azimuth, ring))
-    a, r = azimuth[order], ring[order]
-    step = np.diff(a)
-    step = step[(r[1:] == r[:-1]) & (step > 1e-6)]
+@njit(cache=True)
+def _azimuth_steps(azimuth, ring, n_rings):
+    """The steps > 1e-6 rad between consecutive azimuths within each ring (0..n_rings-1)."""
+    counts = np.zeros(n_rings + 1, dtype=np.int64)
+    for i in range(len(ring)):
+        counts[ring[i] + 1] += 1
+    for r in range(n_rings):
+        counts[r + 1] += counts[r]
+    fill = counts[:-1].copy()
+    grouped = np.empty(len(ring))
+    for i in range(len(ring)):
+        grouped[fill[ring[i]]] = azimuth[i]
+        fill[ring[i]] += 1
+    steps = np.empty(len(ring))
+    n = 0
+    for r in range(n_rings):
+        a = np.sort(grouped[counts[r] : counts[r + 1]])
+        for i in range(1, len(a)):
+            d = a[i] - a[i - 1]
+            if d > 1e-6:
+                steps[n] = d
+                n += 1
+    return steps[:n]
+
+
+def infer_columns(azimuth: np.ndarray, ring: np.ndarray, *, reference: bool = False) -> int:
+    """Range-image width from the median azimuth step between consecutive returns of a beam.
+    ``reference``: the numpy statement (one lexsort) instead of the kernel (same steps)."""
+    if reference or len(ring) == 0 or ring.min() < 0:
+        order = np.lexsort((azimuth, ring))
+        a, r = azimuth[order], ring[order]
+        step = np.diff(a)
+        step = step[(r[1:] == r[:-1]) & (step > 1e-6)]
+    else:
+        ring = np.asarray(ring, dtype=np.int64)
+        step = _azimuth_steps(np.asarray(azimuth, dtype=np.float64), ring, int(ring.max()) + 1)
     if step.size < 10:
         return 1800
     return int(np.clip(np.rint(2 * np.pi / np.median(step)), 360, 4096))
 
 
+@njit(cache=True)
+def _beam_medians(elev, inv, n_beams):
+    """Median of ``elev`` over the points of each beam 0..n_beams-1 (``inv`` (N,) beam of
+    each point): a counting sort by beam, then a sort within each beam."""
+    counts = np.zeros(n_beams, dtype=np.int64)
+    for i in range(len(inv)):
+        counts[inv[i]] += 1
+    start = np.zeros(n_beams + 1, dtype=np.int64)
+    for b in range(n_beams):
+        start[b + 1] = start[b] + counts[b]
+    fill = start[:-1].copy()
+    grouped = np.empty(len(inv))
+    for i in range(len(inv)):
+        grouped[fill[inv[i]]] = elev[i]
+        fill[inv[i]] += 1
+    med = np.empty(n_beams)
+    for b in range(n_beams):
+        seg = np.sort(grouped[start[b] : start[b + 1]])
+        c = counts[b]
+        med[b] = 0.5 * (seg[(c - 1) // 2] + seg[c // 2])
+    return med
+
+
+@njit(cache=True)
+def _cell_owner(cell, rng, n_cells):
+    """Index of the nearest return of each cell (-1: empty); ties: the first point."""
+    owner = np.full(n_cells, -1, dtype=np.int64)
+    best = np.full(n_cells, np.inf)
+    for i in range(len(cell)):
+        c = cell[i]
+        if rng[i] < best[c]:
+            best[c] = rng[i]
+            owner[c] = i
+    return owner
+
+
 def project(
-    xyz: np.ndarray, ring: np.ndarray, n_columns: int = 0
+    xyz: np.ndarray, ring: np.ndarray, n_columns: int = 0, *, reference: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
     """Range-image cell of each point: (row, col, owner (rows, cols) index of the point
     held by each cell or -1, n_columns, row elevation in deg). A cell holds its nearest
-    return; row = rank of the point's beam by median elevation (bottom first)."""
+    return; row = rank of the point's beam by median elevation (bottom first).
+    ``reference``: the numpy statement (sorts) instead of the numba kernels (tested equal)."""
     rng = np.linalg.norm(xyz, axis=1)
     elev = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
     beams, inv, counts = np.unique(ring, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    # median elevation of each beam: one sort by (beam, elevation), the middle of each run
-    srt = elev[np.lexsort((elev, inv))]
-    start = np.r_[0, np.cumsum(counts)[:-1]]
-    med = 0.5 * (srt[start + (counts - 1) // 2] + srt[start + counts // 2])
+    if reference:
+        # median elevation of each beam: one sort by (beam, elevation), the middle of each run
+        srt = elev[np.lexsort((elev, inv))]
+        start = np.r_[0, np.cumsum(counts)[:-1]]
+        med = 0.5 * (srt[start + (counts - 1) // 2] + srt[start + counts // 2])
+    else:
+        med = _beam_medians(elev, inv.astype(np.int64), len(beams))
     rank = np.empty(len(beams), dtype=np.int64)
     rank[np.argsort(med, kind="stable")] = np.arange(len(beams))
     row = rank[inv]
@@ -133,10 +203,13 @@ def project(
         n_columns = infer_columns(az, row)
     col = (np.floor((az + np.pi) / (2 * np.pi) * n_columns).astype(np.int64)) % n_columns
     cell = row * n_columns + col
-    owner = np.full(len(beams) * n_columns, -1, dtype=np.int64)
-    order = np.lexsort((rng, cell))  # by cell, nearest first
-    first = np.r_[True, cell[order][1:] != cell[order][:-1]]
-    owner[cell[order][first]] = order[first]
+    if reference:
+        owner = np.full(len(beams) * n_columns, -1, dtype=np.int64)
+        order = np.lexsort((rng, cell))  # by cell, nearest first
+        first = np.r_[True, cell[order][1:] != cell[order][:-1]]
+        owner[cell[order][first]] = order[first]
+    else:
+        owner = _cell_owner(cell, rng, len(beams) * n_columns)
     return row, col, owner.reshape(len(beams), n_columns), n_columns, np.sort(med)
 
 

@@ -12,6 +12,12 @@ the answers equal those of one KD-tree rebuilt over the live points.
 
 Points get stable integer ids in insertion order (``insert`` returns them); queries
 answer ids, ``points(ids)`` gives their coordinates.
+
+``index="merged"``: no buckets; one KD-tree over the live points, rebuilt at the first query
+after a change (same answers). For the windowed maps of a front end (10^4 points, one
+insert per frame, ~20 queries between inserts) one tree query instead of ~2 bucket queries
+and their merge is 2.5x faster including the rebuild (lego_lpb on the building scene,
+benchmarks/bench_incremental_map.py); the buckets pay off when inserts outnumber queries.
 """
 
 from __future__ import annotations
@@ -30,13 +36,18 @@ class IncrementalMapConfig:
     rebuilt from its live points (lower: faster queries, more rebuilds). merge_ratio: a new
     bucket merges with the one before while that one holds at most merge_ratio times its
     points (1: a binary counter; 4, the default: fewer buckets to query, 0.60 -> 0.42 of the
-    rebuild-per-scan time over 60 plaza scans in bench_incremental_map.py)."""
+    rebuild-per-scan time over 60 plaza scans in bench_incremental_map.py). index:
+    "buckets" (the log-structured trees) or "merged" (one tree over the live points rebuilt
+    at the first query after a change; see the module doc)."""
 
     leafsize: int = 16
     compact_fraction: float = 0.5
     merge_ratio: float = 4.0
+    index: str = "buckets"
 
     def __post_init__(self) -> None:
+        if self.index not in ("buckets", "merged"):
+            raise ConfigError(f"index must be 'buckets' or 'merged', got {self.index!r}")
         if self.leafsize < 1:
             raise ConfigError(f"leafsize must be >= 1, got {self.leafsize}")
         if self.merge_ratio < 1:
@@ -89,6 +100,11 @@ class IncrementalMap:
         self._n = 0
         self._serial = 0
         self.rebuilt_points = 0  # points put into trees so far (the amortised cost)
+        self._merged = self.config.index == "merged"
+        self._version = 0  # changes of the live set (the merged tree follows it)
+        self._tree_version = -1
+        self._tree: cKDTree | None = None
+        self._tree_ids = np.zeros(0, dtype=np.int64)
 
     # ------------------------------------------------------------------ state
     def __len__(self) -> int:
@@ -162,7 +178,9 @@ class IncrementalMap:
         self._xyz[ids] = xyz
         self._alive[ids] = True
         self._n += len(xyz)
-        self._add_bucket(ids)
+        self._version += 1
+        if not self._merged:
+            self._add_bucket(ids)
         return ids
 
     def _select(
@@ -207,6 +225,9 @@ class IncrementalMap:
         if len(sel) == 0:
             return 0
         self._alive[sel] = False
+        self._version += 1
+        if self._merged:
+            return int(len(sel))
         serials = self._bucket_of[sel]
         counts = dict(zip(*np.unique(serials[serials >= 0], return_counts=True), strict=True))
         rebuild = []
@@ -234,6 +255,9 @@ class IncrementalMap:
         if len(ids) == 0:
             return 0
         self._alive[ids] = True
+        self._version += 1
+        if self._merged:
+            return int(len(ids))
         held = self._bucket_of[ids] >= 0
         counts = dict(zip(*np.unique(self._bucket_of[ids[held]], return_counts=True), strict=True))
         for b in self._buckets:
@@ -242,39 +266,52 @@ class IncrementalMap:
         return int(len(ids))
 
     # ------------------------------------------------------------------ queries
-    def _bucket_knn(self, b: _Bucket, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The k nearest live points of one bucket: (Q, k) distances and ids (inf / -1)."""
+    def _bucket_knn(
+        self, b: _Bucket, q: np.ndarray, k: int, bound: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The k nearest live points of one bucket within ``bound`` m: (Q, k) distances and
+        ids (inf / -1 where missing)."""
         want = min(k, b.n_alive)
         dist = np.full((len(q), k), np.inf)
         out = np.full((len(q), k), -1, dtype=np.int64)
         todo = np.arange(len(q))
         kk = min(b.size, want if b.n_dead == 0 else 2 * want)
         while len(todo):
-            d, j = b.tree.query(q[todo], k=kk)
+            d, j = b.tree.query(q[todo], k=kk, distance_upper_bound=bound)
             d, j = d.reshape(len(todo), kk), j.reshape(len(todo), kk)
             ids = b.ids[np.minimum(j, b.size - 1)]
             live = (j < b.size) & self._alive[ids]
-            done = (live.sum(axis=1) >= want) | (kk >= b.size)
+            # done: enough live hits, the whole bucket seen, or nothing more within bound
+            done = (live.sum(axis=1) >= want) | (kk >= b.size) | ~np.isfinite(d[:, -1])
             rows = todo[done]
             ld, li, lv = d[done], ids[done], live[done]
-            # stable: live hits in distance order first
-            order = np.argsort(~lv, axis=1, kind="stable")[:, :want]
-            pick_d = np.take_along_axis(ld, order, axis=1)
-            pick_i = np.take_along_axis(li, order, axis=1)
-            pick_ok = np.take_along_axis(lv, order, axis=1)
-            dist[rows, :want] = np.where(pick_ok, pick_d, np.inf)
-            out[rows, :want] = np.where(pick_ok, pick_i, -1)
+            if lv.all():  # no dead point among the hits (the common case): as they are
+                dist[rows, :want] = ld[:, :want]
+                out[rows, :want] = li[:, :want]
+            else:  # stable: live hits in distance order first
+                order = np.argsort(~lv, axis=1, kind="stable")[:, :want]
+                pick_d = np.take_along_axis(ld, order, axis=1)
+                pick_i = np.take_along_axis(li, order, axis=1)
+                pick_ok = np.take_along_axis(lv, order, axis=1)
+                dist[rows, :want] = np.where(pick_ok, pick_d, np.inf)
+                out[rows, :want] = np.where(pick_ok, pick_i, -1)
             todo = todo[~done]
             kk = min(b.size, 2 * kk)
         return dist, out
 
-    def knn(self, queries: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def knn(
+        self, queries: np.ndarray, k: int = 1, *, distance_upper_bound: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The k nearest live points of each query (Q, 3): distances (Q, k) m ascending and
-        ids (Q, k); missing neighbours (fewer than k live points) are inf / -1."""
+        ids (Q, k); missing neighbours (fewer than k live points, or beyond
+        ``distance_upper_bound`` m) are inf / -1."""
         q = _check_points(queries, "queries")
         if k < 1:
             raise InputError(f"k must be >= 1, got {k}")
-        parts = [self._bucket_knn(b, q, k) for b in self._buckets if b.n_alive]
+        bound = float(distance_upper_bound)
+        if self._merged:
+            return self._merged_knn(q, k, bound)
+        parts = [self._bucket_knn(b, q, k, bound) for b in self._buckets if b.n_alive]
         if not parts:
             return np.full((len(q), k), np.inf), np.full((len(q), k), -1, dtype=np.int64)
         if len(parts) == 1:
@@ -283,6 +320,29 @@ class IncrementalMap:
         i = np.concatenate([p[1] for p in parts], axis=1)
         order = np.argsort(d, axis=1, kind="stable")[:, :k]
         return np.take_along_axis(d, order, axis=1), np.take_along_axis(i, order, axis=1)
+
+    def _merged_tree(self) -> tuple[cKDTree | None, np.ndarray]:
+        """The one KD-tree over the live points (index="merged"), rebuilt after a change."""
+        if self._tree_version != self._version:
+            ids = self.alive_ids()
+            self._tree = (
+                cKDTree(self._xyz[ids], leafsize=self.config.leafsize, balanced_tree=False)
+                if len(ids)
+                else None
+            )
+            self._tree_ids = ids
+            self._tree_version = self._version
+            self.rebuilt_points += len(ids)
+        return self._tree, self._tree_ids
+
+    def _merged_knn(self, q: np.ndarray, k: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        tree, ids = self._merged_tree()
+        if tree is None:
+            return np.full((len(q), k), np.inf), np.full((len(q), k), -1, dtype=np.int64)
+        d, j = tree.query(q, k=k, distance_upper_bound=bound)
+        d, j = d.reshape(len(q), k), j.reshape(len(q), k)
+        found = j < len(ids)
+        return np.where(found, d, np.inf), np.where(found, ids[np.minimum(j, len(ids) - 1)], -1)
 
     def radius(
         self, queries: np.ndarray, r: float, *, return_distances: bool = False
@@ -294,11 +354,14 @@ class IncrementalMap:
             raise InputError(f"radius must be >= 0, got {r}")
         qt = cKDTree(q)
         rows, ids, dists = [], [], []
-        for b in self._buckets:
-            if not b.n_alive:
-                continue
-            m = qt.sparse_distance_matrix(b.tree, r, output_type="ndarray")
-            hit_ids = b.ids[m["j"]]
+        if self._merged:
+            tree, tree_ids = self._merged_tree()
+            sources = [] if tree is None else [(tree, tree_ids)]
+        else:
+            sources = [(b.tree, b.ids) for b in self._buckets if b.n_alive]
+        for tree, bucket_ids in sources:
+            m = qt.sparse_distance_matrix(tree, r, output_type="ndarray")
+            hit_ids = bucket_ids[m["j"]]
             live = self._alive[hit_ids]
             rows.append(m["i"][live])
             ids.append(hit_ids[live])

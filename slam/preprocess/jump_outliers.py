@@ -19,7 +19,8 @@ own side and is kept. Neighbours more than ``max_gap_deg`` away in azimuth (a mi
 return between them) are not compared; a point with fewer than ``min_neighbours``
 comparable neighbours is kept (nothing to judge it against).
 
-Numpy only: the window is ``2 * window`` shifted copies of the ring-sorted arrays.
+The numpy statement (``reference=True``: ``2 * window`` shifted copies of the ring-sorted
+arrays) is the tested reference of a numba kernel that walks each point's window once.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from slam.errors import ConfigError, InputError
 
@@ -78,17 +80,55 @@ def _ring_order(ring: np.ndarray, azimuth: np.ndarray) -> tuple[np.ndarray, np.n
     return order, np.column_stack([starts[group], sizes[group]])
 
 
+@njit(cache=True)
+def _bad_kernel(
+    r, az, inten, start, size, window, max_gap, tol_abs, tol_rel, int_tol, use_int,
+    min_agree, min_neighbours,
+):  # fmt: skip
+    """Outlier flags of the ring-sorted points (see ``jump_outlier_mask``): each point's
+    window of +-``window`` ring neighbours (circular), compared once."""
+    n = len(r)
+    bad = np.zeros(n, dtype=np.bool_)
+    two_pi = 2.0 * np.pi
+    for i in range(n):
+        s0, m = start[i], size[i]
+        pos = i - s0
+        tol = max(tol_abs, tol_rel * r[i])
+        comparable = 0
+        agree_r = 0
+        agree_i = 0
+        for s in range(-window, window + 1):
+            if s == 0 or abs(s) >= m:
+                continue
+            j = s0 + (pos + s) % m
+            gap = abs((az[j] - az[i] + np.pi) % two_pi - np.pi)
+            if gap > max_gap:
+                continue
+            comparable += 1
+            if abs(r[j] - r[i]) <= tol:
+                agree_r += 1
+                if use_int and abs(inten[j] - inten[i]) <= int_tol:
+                    agree_i += 1
+        if comparable >= min_neighbours:
+            if agree_r < min_agree or (use_int and agree_i < min_agree):
+                bad[i] = True
+    return bad
+
+
 def jump_outlier_mask(
     xyz: np.ndarray,
     intensity: np.ndarray | None,
     ring: np.ndarray | None,
     cfg: JumpOutlierConfig | None = None,
+    *,
+    reference: bool = False,
 ) -> np.ndarray:
     """Keep-mask (N,) bool: False for range or intensity spikes along the rings (3.1.1).
 
     xyz: (N, 3) m, sensor frame. intensity: (N,) any unit, or None (range test only).
     ring: (N,) beam index, or None: then the test is skipped (all kept), since neighbours
     along a beam are unknown (the pipeline fills rings from its beam model).
+    reference: the numpy statement instead of the numba kernel (the same mask).
     """
     cfg = cfg or JumpOutlierConfig()
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -117,8 +157,26 @@ def jump_outlier_mask(
         scale = float(np.quantile(inten, cfg.intensity_quantile))
         use_int = scale > 0 and np.all(np.isfinite(inten))
         int_tol = cfg.intensity_jump * scale
-    range_tol = np.maximum(cfg.range_jump_abs, cfg.range_jump_rel * r)
     max_gap = np.radians(cfg.max_gap_deg)
+    if not reference:
+        bad = _bad_kernel(
+            r,
+            az,
+            inten if use_int else np.zeros(1),
+            start.astype(np.int64),
+            size.astype(np.int64),
+            int(cfg.window),
+            float(max_gap),
+            float(cfg.range_jump_abs),
+            float(cfg.range_jump_rel),
+            float(int_tol) if use_int else 0.0,
+            bool(use_int),
+            int(cfg.min_agree),
+            int(cfg.min_neighbours),
+        )
+        keep[order[bad]] = False
+        return keep
+    range_tol = np.maximum(cfg.range_jump_abs, cfg.range_jump_rel * r)
     comparable = np.zeros(n, dtype=np.int32)
     agree_r = np.zeros(n, dtype=np.int32)
     agree_i = np.zeros(n, dtype=np.int32)

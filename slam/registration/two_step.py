@@ -31,6 +31,7 @@ from slam.registration.gicp import (
     RegistrationError,
     RegistrationResult,
     _check_points,
+    _workers,
     se3_exp,
     skew,
     solve_weighted,
@@ -134,12 +135,15 @@ def _huber(r: np.ndarray, delta: float) -> np.ndarray:
 
 class MapTarget(Protocol):
     """A map the matcher can search besides a FeatureTarget (e.g. an incremental map):
-    ``neighbours(queries (n, 3), k)`` -> distances (n, k) m ascending and the neighbours'
-    coordinates (n, k, 3); ``len()`` = live points."""
+    ``neighbours(queries (n, 3), k, max_distance=inf)`` -> distances (n, k) m ascending and
+    the neighbours' coordinates (n, k, 3), neighbours beyond ``max_distance`` (m) may be
+    left out (inf); ``len()`` = live points."""
 
     def __len__(self) -> int: ...
 
-    def neighbours(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]: ...
+    def neighbours(
+        self, queries: np.ndarray, k: int, *, max_distance: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 Target = FeatureTarget | MapTarget
@@ -149,13 +153,18 @@ def _knn(moved: np.ndarray, target: Target | None, cfg: TwoStepConfig):
     k = cfg.k_neighbors
     if target is None or len(target) < k or len(moved) == 0:
         return None
+    # neighbourhoods whose k-th point is beyond max_neighbor_distance are dropped, so the
+    # search stops there (same answers for the rows kept; the voxel-hash map then needs no
+    # KD-tree fallback); worker threads only for large batches (their start-up costs more)
+    bound = cfg.max_neighbor_distance
     if isinstance(target, FeatureTarget):
-        d, j = target.tree.query(moved, k=k, workers=cfg.threads)
-        ok = d[:, -1] < cfg.max_neighbor_distance
+        workers = _workers(len(moved), cfg.threads)
+        d, j = target.tree.query(moved, k=k, distance_upper_bound=bound, workers=workers)
+        ok = d[:, -1] < bound
         nb = target.points[j[ok]]
     else:
-        d, nb = target.neighbours(moved, k)
-        ok = d[:, -1] < cfg.max_neighbor_distance
+        d, nb = target.neighbours(moved, k, max_distance=bound)
+        ok = d[:, -1] < bound
         nb = nb[ok]
     c = nb.mean(axis=1)
     centred = nb - c[:, None, :]
