@@ -11,6 +11,10 @@ side by side with the working tree ("before"/"after" columns, same run, results 
 scan's rings, slam.preprocess.range_image) on a simulated 16-beam corridor and park scan, a
 simulated 64-beam urban scan and a real KITTI-raw HDL-64E scan (rings inferred as the pipeline
 does), with the certificate rate and whether the keep-masks are identical.
+--scans --before REV times the SOR with rings of revision REV (its sor, sor_kernels, knn,
+range_image and range_image_kernels modules, written to a temporary package so that numba
+caches them) against the working tree on the same scans, interleaved; --threads N sets
+numba's threads (CPU time with 1 thread is the unloaded single-core time on a busy machine).
 """
 
 from __future__ import annotations
@@ -79,6 +83,31 @@ def load_revision(rev: str) -> dict[str, types.ModuleType]:
     return mods
 
 
+SOR_CHAIN = ("sor", "sor_kernels", "knn", "range_image", "range_image_kernels")
+
+
+def load_sor_chain(rev: str, folder: str) -> types.ModuleType:
+    """slam.preprocess.sor of revision rev with the k-NN modules it uses, as files of a
+    package ``sor_before`` under folder (imports rewired to it; numba caches beside them)."""
+    import importlib
+
+    pkg = os.path.join(folder, "sor_before")
+    os.makedirs(pkg, exist_ok=True)
+    open(os.path.join(pkg, "__init__.py"), "w").close()
+    for name in SOR_CHAIN:
+        src = subprocess.run(
+            ["git", "show", f"{rev}:slam/preprocess/{name}.py"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        with open(os.path.join(pkg, f"{name}.py"), "w") as f:
+            f.write(src.replace("slam.preprocess.", "sor_before."))
+    sys.path.insert(0, folder)
+    return importlib.import_module("sor_before.sor")
+
+
 def stages(m: dict[str, types.ModuleType], xyz, ring, time_s, T) -> dict:
     """Callables per stage; the improved-FLOAM chain is deskew -> weighted SOR -> features with
     kappa -> voxel downsample of edges (0.2 m) and planes (0.4 m)."""
@@ -117,10 +146,10 @@ def timed(fn, repeat):
     return timed_pair({"_": fn}, repeat)["_"][0]
 
 
-def timed_pair(fns: dict, repeat: int) -> dict[str, tuple[float, float]]:
-    """Median (wall, CPU) ms per callable, the callables interleaved run by run so that load
-    changes hit all of them alike. CPU = process time, close to the unloaded wall time of
-    single-threaded code on a busy machine (threads add their CPU time up instead)."""
+def timed_pair(fns: dict, repeat: int, stat=np.median) -> dict[str, tuple[float, float]]:
+    """Median (or stat) of the (wall, CPU) ms per callable, the callables interleaved run by
+    run so that load changes hit all of them alike. CPU = process time, close to the unloaded
+    wall time of single-threaded code on a busy machine (threads add their CPU time up)."""
     for fn in fns.values():
         fn()
     wall: dict = {k: [] for k in fns}
@@ -131,7 +160,7 @@ def timed_pair(fns: dict, repeat: int) -> dict[str, tuple[float, float]]:
             fn()
             wall[k].append(time.perf_counter() - t0)
             cpu[k].append(time.process_time() - c0)
-    return {k: (1e3 * float(np.median(wall[k])), 1e3 * float(np.median(cpu[k]))) for k in fns}
+    return {k: (1e3 * float(stat(wall[k])), 1e3 * float(stat(cpu[k]))) for k in fns}
 
 
 def knn_rows(xyz, repeat) -> dict:
@@ -197,6 +226,45 @@ def real_scans() -> list[tuple[str, np.ndarray, np.ndarray]]:
     return out
 
 
+def scan_rows_before(rev: str, repeat: int) -> None:
+    """SOR with rings, revision rev against the working tree, same scans, same run."""
+    import tempfile
+
+    from slam.preprocess.range_image import range_image_knn
+
+    folder = tempfile.mkdtemp(prefix="sor_before_")
+    before = load_sor_chain(rev, folder)
+    cfg_b, cfg_a = before.SorConfig(), sor_mod.SorConfig()
+    print(f"load average {os.getloadavg()[0]:.2f}; min of {repeat}, ms per scan (wall / CPU)")
+    print(
+        f"  {'scan':20s} {'points':>7s} {'SOR ' + rev[:10]:>15s} {'SOR now':>15s}"
+        f" {'x wall':>6s} {'x CPU':>6s} {'cert':>6s} same-mask same-k-NN"
+    )
+    for name, xyz, ring in real_scans():
+        res = timed_pair(
+            {
+                "before": lambda x=xyz, r=ring: before.apply_sor(x, cfg_b, ring=r),
+                "after": lambda x=xyz, r=ring: sor_mod.apply_sor(x, cfg_a, ring=r),
+            },
+            repeat,
+            stat=min,
+        )
+        (wb, cb), (wa, ca) = res["before"], res["after"]
+        nb = before.neighbourhoods(xyz, cfg_b.k, ring=ring)
+        na = sor_mod.neighbourhoods(xyz, cfg_a.k, ring=ring)
+        same_mask = np.array_equal(
+            before.apply_sor(xyz, cfg_b, ring=ring), sor_mod.apply_sor(xyz, cfg_a, ring=ring)
+        )
+        same_knn = np.array_equal(nb.dist, na.dist) and np.array_equal(
+            np.sort(nb.idx, axis=1), np.sort(na.idx, axis=1)
+        )
+        cert = range_image_knn(xyz, ring, cfg_a.k).certified_rate
+        print(
+            f"  {name:20s} {len(xyz):7d} {wb:7.1f}/{cb:7.1f} {wa:7.1f}/{ca:7.1f}"
+            f" {wb / wa:6.2f} {cb / ca:6.2f} {cert:6.3f} {same_mask!s:9s} {same_knn}"
+        )
+
+
 def scan_rows(repeat: int) -> None:
     """Old (KD-tree) vs new (range image) k-NN and weighted SOR per scan, same run."""
     from slam.preprocess.knn import self_knn
@@ -234,7 +302,15 @@ def main() -> None:
     ap.add_argument("--before", metavar="REV", help="git revision to compare against")
     ap.add_argument("--knn", action="store_true", help="also time the k-NN back ends")
     ap.add_argument("--scans", action="store_true", help="SOR old vs new on 16/64-beam scans")
+    ap.add_argument("--threads", type=int, help="numba threads (default: numba's)")
     args = ap.parse_args()
+    if args.threads:
+        import numba
+
+        numba.set_num_threads(args.threads)
+    if args.scans and args.before:
+        scan_rows_before(args.before, args.repeat)
+        return
     if args.scans:
         scan_rows(args.repeat)
         return

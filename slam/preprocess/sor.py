@@ -48,7 +48,11 @@ def _check_xyz(xyz: np.ndarray) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
-    if not np.all(np.isfinite(xyz)):
+    # a finite sum proves every value finite (NaN and inf propagate); the elementwise check
+    # (an (N, 3) temporary) only when it does not, e.g. for huge finite values
+    with np.errstate(invalid="ignore", over="ignore"):
+        total = xyz.sum()
+    if not np.isfinite(total) and not np.all(np.isfinite(xyz)):
         raise InputError("points contain NaN or inf; drop invalid returns before filtering")
     return xyz
 
