@@ -410,9 +410,43 @@ class Pipeline:
             self.finish()
         return st
 
-    def finish(self) -> None:
-        """Final optimisation; fills ``state.estimates`` for every keyframe."""
+    def _flush_factor_sources(self) -> None:
+        """Factors a plugin still holds at the end (``flush(graph)``, e.g. loops verified in
+        a worker process and due after the last keyframe) go into one last update."""
         st = self.state
+        if not st.keyframes:
+            return
+        factors: list[Any] = []
+        loop_closed = False
+        for source in self.factor_sources:
+            flush = getattr(source.plugin, "flush", None)
+            if not callable(flush):
+                continue
+            t0 = time.perf_counter()
+            new = list(flush(self.view))
+            st.stage_seconds[f"factor:{source.name}"] += time.perf_counter() - t0
+            st.factor_counts[source.name] += len(new)
+            if new and source.is_loop:
+                loop_closed = True
+                st.loops_closed += len(new)
+            factors.extend(new)
+        if factors:
+            t0 = time.perf_counter()
+            self.backend.update(factors, {}, loop_closed=loop_closed)
+            st.stage_seconds["backend"] += time.perf_counter() - t0
+            self._estimate_cache = {}
+
+    def finish(self) -> None:
+        """Flush the factor plugins, final optimisation; fills ``state.estimates`` for every
+        keyframe."""
+        st = self.state
+        try:
+            self._flush_factor_sources()
+        finally:
+            for source in self.factor_sources:
+                close = getattr(source.plugin, "close", None)
+                if callable(close):
+                    close()
         if not st.keyframes:
             return
         t0 = time.perf_counter()

@@ -548,8 +548,12 @@ def test_candidate_the_odometry_rules_out_is_not_registered(monkeypatch):
     """A candidate whose estimate lies farther than max_offset + the consistency allowance,
     or whose guessed yaw (either way round) cannot meet the estimate's, skips GICP."""
     plugin_mod = importlib.import_module("slam.loop.plugin")
-    calls = []
-    monkeypatch.setattr(plugin_mod, "verify", lambda *a: calls.append(a) or None)
+    calls = []  # verification jobs call verify() through slam.loop.background
+    monkeypatch.setattr(
+        importlib.import_module("slam.loop.background"),
+        "verify",
+        lambda *a: calls.append(a) or None,
+    )
     plugin = LoopClosurePlugin(LoopClosurePlugin.Config(max_radius=40.0, lidar_height=1.0))
     cloud = np.random.default_rng(0).normal(size=(100, 3))
     poses = {0: np.eye(4), 1: _pose(60.0, 0.0, 0.0)}
@@ -578,3 +582,32 @@ def test_plugin_keeps_no_copy_of_the_keyframe_clouds(hall_run):
     assert per_kf < 20 * 60 * 4 * 3  # ~ a descriptor (20 x 60 float32) and its keys, not points
     assert not any(isinstance(v, dict) and v and isinstance(next(iter(v.values())), np.ndarray)
                    for v in vars(plugin).values())  # fmt: skip
+
+
+def test_worker_process_verification_equals_in_process_at_a_fixed_lag(rooms_run):
+    """verify_workers=1: the same candidates, decisions and loop transforms as verifying
+    in-process (the rooms: a rejected look-alike and accepted returns), each loop factor
+    returned exactly verify_lag keyframes later (the last ones by flush), whatever the
+    worker's speed."""
+    plugin, factors, truth, odo = rooms_run
+    cfg = LoopClosurePlugin.Config(
+        max_radius=20.0, lidar_height=1.0, exclude_recent=5, verify_workers=1, verify_lag=2
+    )
+    background = LoopClosurePlugin(cfg)
+    try:
+        late = _run(background, truth, odo, _scene(_rooms_boxes()), seed=1)
+        flushed = background.flush(None)
+    finally:
+        background.close()
+    assert [(e.source, e.target, e.accepted, e.reason) for e in background.events] == [
+        (e.source, e.target, e.accepted, e.reason) for e in plugin.events
+    ]
+    for a, b in zip(background.events, plugin.events, strict=True):
+        np.testing.assert_array_equal(a.T_target_source, b.T_target_source)
+    n = len(truth)
+    due = [(i + 2 if i + 2 < n else None, f) for i, f in factors]
+    got = [(i, f) for i, f in late] + [(None, f) for f in flushed]
+    assert [i for i, _ in got] == [i for i, _ in due] and len(got) == len(factors) > 0
+    for (_, f), (_, g) in zip(got, due, strict=True):
+        assert f.keys() == g.keys() and f.measured().equals(g.measured(), 0.0)
+    assert background.stats()["accepted"] == plugin.stats()["accepted"]

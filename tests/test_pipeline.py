@@ -185,15 +185,58 @@ def test_stage_timings_per_frame_show_which_stage_grows(tmp_path):
     write_outputs(pipe, tmp_path, resolved_config={})
     m = json.loads((tmp_path / "metrics.json").read_text())
     first, last = m["stage_ms_first100"], m["stage_ms_last100"]
-    assert first["factor:slow"] < 0.5 and last["factor:slow"] >= 8.0
+    # wall time: the sleep is a lower bound (no upper bounds: the machine may be loaded)
+    assert last["factor:slow"] >= 8.0 and first["factor:slow"] < last["factor:slow"] - 4.0
     # the stages and the pipeline's own rest add up to the frame time of each window
     for window, frame in ((first, m["frame_ms_first100"]), (last, m["frame_ms_last100"])):
         assert sum(window.values()) == pytest.approx(frame, rel=1e-3, abs=0.01)
-    # the growth is the slow stage's, not the pipeline's bookkeeping
-    assert last["other"] < 0.25 * last["factor:slow"]
     # CPU time: sleeping costs none, so the slow stage does not grow there
     cpu_first, cpu_last = m["stage_cpu_ms_first100"], m["stage_cpu_ms_last100"]
     assert cpu_last["factor:slow"] < 0.5 * last["factor:slow"]
     for window, frame in ((cpu_first, m["frame_cpu_ms_first100"]),
                           (cpu_last, m["frame_cpu_ms_last100"])):  # fmt: skip
         assert sum(window.values()) == pytest.approx(frame, rel=1e-3, abs=0.01)
+
+
+class HoldingLoopPlugin:
+    """A loop plugin that holds one loop factor (last keyframe -> first) until flush."""
+
+    is_loop = True
+
+    def __init__(self, measured):
+        self.measured, self.closed, self.last = measured, False, None
+
+    def on_keyframe(self, kf, graph):
+        self.last = kf.id
+        return []
+
+    def flush(self, graph):
+        import gtsam
+
+        from slam.factors import key
+
+        noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)
+        return [gtsam.BetweenFactorPose3(key(0), key(self.last), self.measured, noise)]
+
+    def close(self):
+        self.closed = True
+
+
+def test_factors_a_plugin_holds_at_the_end_enter_the_final_estimate():
+    import gtsam
+
+    from slam.pipeline import FactorSource
+
+    poses = circle_odometry(n=60)
+    truth_last = gtsam.Pose3(poses[0]).between(gtsam.Pose3(poses[-1]))
+    shifted = truth_last.compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.5, 0.0])))
+    holder = HoldingLoopPlugin(shifted)
+    sources = build_factor_plugins({"prior": {}, "odometry": {}})
+    sources.append(FactorSource("loop", holder))
+    pipe = Pipeline(SlamConfig(), frontend=ScriptedFrontend(poses), factor_sources=sources)
+    st = pipe.run(scans(len(poses)))
+    assert holder.closed and st.loops_closed == 1 and st.factor_counts["loop"] == 1
+    last = st.estimates[len(st.keyframes) - 1]
+    # the held loop (0.5 m aside, 10x tighter than odometry) pulls the last keyframe over
+    moved = np.linalg.solve(poses[0], last)[:3, 3] - truth_last.translation()
+    assert 0.2 < moved[1] < 0.55

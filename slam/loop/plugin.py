@@ -30,6 +30,13 @@ import numpy as np
 
 from slam.errors import InputError
 from slam.factors import FactorConfig, GraphView, information_noise, key, pose3, robust_noise
+from slam.loop.background import (
+    CandidateJob,
+    KeyframeJob,
+    OdometryGate,
+    VerifyPool,
+    run_job,
+)
 from slam.loop.scan_context import ScanContextParams, scan_context
 from slam.loop.scan_context_pp import (
     CartesianIndex,
@@ -39,9 +46,8 @@ from slam.loop.scan_context_pp import (
 )
 from slam.loop.search import Candidate, ScanContextDatabase, SearchParams
 from slam.loop.verify import (
+    COARSE_REGISTRATIONS,
     VerifyParams,
-    VerifyResult,
-    verify,
     wrap_angle,
     yaw_matrix,
     yaw_of,
@@ -128,7 +134,13 @@ class LoopClosurePlugin:
         times floam's, twelve times improved_floam's on the urban drive; the loop tests'
         injected 0.4 deg/m heading drift needs 3-4 %); 0.1 let a look-alike street 36 m
         along the road through after a 645 m loop in a block grid.
-        min_sigma_trans (m) / min_sigma_rot_deg: sigma floor of the loop noise."""
+        min_sigma_trans (m) / min_sigma_rot_deg: sigma floor of the loop noise.
+        coarse_registration: gicp (KD-tree GICP on both clouds at coarse_voxel) or vgicp
+        (small_gicp's voxelised GICP against the fine target's Gaussian voxels of
+        coarse_vgicp_resolution m: no coarse target covariances or KD-tree).
+        verify_workers: 0 verifies in the pipeline's process at the keyframe itself; n > 0 in
+        n worker processes, and the loop enters the graph verify_lag keyframes later (the
+        pipeline waits there if the worker is not done: results never depend on timing)."""
 
         # Huber, not Cauchy(1): a verified loop's residual at the drifted linearisation point
         # is large (whitened ~100s); Cauchy(1) then weights it ~1e-5 and the loop never pulls,
@@ -186,6 +198,10 @@ class LoopClosurePlugin:
         min_sigma_trans: float = 0.05  # a 16-beam scan-to-scan loop is good to cm, not mm
         min_sigma_rot_deg: float = 0.5
         max_sigma_ratio: float = 100.0
+        coarse_registration: str = "gicp"
+        coarse_vgicp_resolution: float = 1.0
+        verify_workers: int = 0
+        verify_lag: int = 2
 
         def __post_init__(self) -> None:
             super().__post_init__()
@@ -209,6 +225,16 @@ class LoopClosurePlugin:
             if self.proposer not in PROPOSERS:
                 raise ValueError(
                     f"unknown proposer '{self.proposer}'; valid: {', '.join(PROPOSERS)}"
+                )
+            if self.coarse_registration not in COARSE_REGISTRATIONS:
+                raise ValueError(
+                    f"unknown coarse_registration '{self.coarse_registration}'; valid: "
+                    f"{', '.join(COARSE_REGISTRATIONS)}"
+                )
+            if self.verify_workers < 0 or self.verify_lag < 1:
+                raise ValueError(
+                    f"verify_workers must be >= 0 and verify_lag >= 1 (keyframes), got "
+                    f"{self.verify_workers} and {self.verify_lag}"
                 )
             if self.proposer == "radius" and not self.radius > 0:
                 raise ValueError(f"radius must be > 0 m for proposer radius, got {self.radius}")
@@ -257,7 +283,13 @@ class LoopClosurePlugin:
             min_sigma_trans=cfg.min_sigma_trans,
             min_sigma_rot_deg=cfg.min_sigma_rot_deg,
             max_sigma_ratio=cfg.max_sigma_ratio,
+            coarse_registration=cfg.coarse_registration,
+            coarse_vgicp_resolution=cfg.coarse_vgicp_resolution,
         )
+        self.pool = (
+            VerifyPool(cfg.verify_workers, self.verify_params) if cfg.verify_workers else None
+        )
+        self._jobs: list[KeyframeJob] = []  # submitted to the pool, oldest first
         self.cc_index: CartesianIndex | None = None  # SC++ only, once the geometry is fixed
         self.events: list[LoopConstraint] = []
         self._event_meta: list[tuple[float, float, float]] = []  # stamps and yaw per event
@@ -289,15 +321,43 @@ class LoopClosurePlugin:
         self._travel[kf.id] = self._travel.get(kf.id - 1, 0.0) + step
         candidates = [] if pending else self._candidates(kf, desc, cc, graph)
         self.detect_ms.append(1e3 * (time.perf_counter() - t0))
-        if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
-            self.verify_ms_by_keyframe.append(0.0)
-            return []
         t1 = time.perf_counter()
+        factors = self._collect(kf.id) if self.pool is not None else []
+        if not candidates or kf.id - self._last_accepted < cfg.min_keyframe_gap:
+            self.verify_ms_by_keyframe.append(1e3 * (time.perf_counter() - t1))
+            return factors
         try:
-            return self._verify_candidates(kf, candidates, graph)
+            job = self._make_job(kf, candidates, graph)
+            if self.pool is None:
+                factors += self._finish_job(job, run_job(job, self.verify_params))
+            else:  # the loop enters the graph at keyframe job.due
+                self.pool.submit(job)
+                self._jobs.append(job)
+            return factors
         finally:
             self.verify_ms.append(1e3 * (time.perf_counter() - t1))
             self.verify_ms_by_keyframe.append(self.verify_ms[-1])
+
+    def flush(self, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
+        """The loop factors of every verification still running in a worker (end of the run:
+        the pipeline adds them before the final optimisation); nothing when verifying
+        in-process."""
+        factors = self._collect(None)
+        return factors
+
+    def close(self) -> None:
+        """Stop the worker processes (if any); the plugin verifies in-process afterwards."""
+        if self.pool is not None:
+            self.pool.close()
+
+    def _collect(self, kf_id: int | None) -> list[gtsam.BetweenFactorPose3]:
+        """Results of the jobs due at keyframe ``kf_id`` (None: all), oldest first, waiting
+        for the worker when one is not done yet."""
+        factors = []
+        while self._jobs and (kf_id is None or self._jobs[0].due <= kf_id):
+            job = self._jobs.pop(0)
+            factors += self._finish_job(job, self.pool.result(job))
+        return factors
 
     # ------------------------------------------------------------------ steps
     def _fix_descriptor_params(self) -> None:
@@ -431,11 +491,12 @@ class LoopClosurePlugin:
                 parts.append(cloud @ T[:3, :3].T + T[:3, 3])
         return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
 
-    def _verify_candidates(
-        self, kf: Keyframe, candidates: list[Candidate], graph: GraphView
-    ) -> list[gtsam.BetweenFactorPose3]:
+    def _make_job(self, kf: Keyframe, candidates: list[Candidate], graph: GraphView) -> KeyframeJob:
+        """Everything verifying ``kf``'s first max_verify candidates needs, from the estimates
+        now: initial guesses, the gates, and the clouds of the candidates the odometry does
+        not already rule out (:meth:`_unreachable`; the source cloud only if one remains)."""
         cfg = self.config
-        source = None  # built on first use: a candidate the odometry rules out needs none
+        jobs = []
         for cand in candidates[: cfg.max_verify]:
             if cand.shift < 0:  # proximity candidate: the estimate is the initial guess
                 init = np.linalg.inv(self._estimate_id(graph, cand.kf_id)) @ self._estimate(
@@ -445,28 +506,32 @@ class LoopClosurePlugin:
                 init = np.asarray(cand.init, dtype=np.float64)
             else:
                 init = yaw_matrix(cand.yaw)
-            res = None
-            reason = self._unreachable(graph, kf, cand.kf_id, init)
-            if reason:  # no registration could pass the gates: skip GICP
-                self.skipped += 1
-                res = VerifyResult(False, init, np.inf, 0.0, np.degrees(cand.yaw), np.zeros((6, 6)),
-                                   reason)  # fmt: skip
-            else:
-                if source is None:
-                    T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
-                    source = self._local_cloud(graph, kf.id, T_w_cur)
+            cj = CandidateJob(cand, init, self._gate(graph, kf, cand.kf_id))
+            cj.skip = self._unreachable(graph, kf, cand.kf_id, init)
+            if not cj.skip:
                 T_w_cand = self._estimate_id(graph, cand.kf_id) if cfg.neighbours > 0 else np.eye(4)
-                target = self._local_cloud(graph, cand.kf_id, T_w_cand)
-                t0 = time.perf_counter()
-                res = verify(target, source, init, self.verify_params)
+                cj.target = self._local_cloud(graph, cand.kf_id, T_w_cand)
+            jobs.append(cj)
+        source = None
+        if any(not cj.skip for cj in jobs):
+            T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
+            source = self._local_cloud(graph, kf.id, T_w_cur)
+        return KeyframeJob(kf.id, kf.stamp, jobs, source, kf.id + cfg.verify_lag)
+
+    def _finish_job(self, job: KeyframeJob, results: list) -> list[gtsam.BetweenFactorPose3]:
+        """Record a job's results (events, loops.csv rows, counters); the loop factor of the
+        accepted candidate, if one was."""
+        cfg = self.config
+        for cj, (res, ms) in zip(job.candidates, results, strict=False):  # stops at accepted
+            cand = cj.cand
+            if ms < 0:
+                self.skipped += 1
+            else:
                 self.registrations += 1
-                self.register_ms += 1e3 * (time.perf_counter() - t0)
-                if res.accepted:
-                    res.reason = self._inconsistency(graph, kf, cand.kf_id, res.T_target_source)
-                    res.accepted = not res.reason
+                self.register_ms += ms
             self.events.append(
                 LoopConstraint(
-                    source=kf.id,
+                    source=job.kf_id,
                     target=cand.kf_id,
                     T_target_source=res.T_target_source,
                     score=cand.distance,
@@ -476,22 +541,39 @@ class LoopClosurePlugin:
                     reason=res.reason,
                 )
             )
-            self._event_meta.append((kf.stamp, self.db.stamp(cand.row), res.yaw_deg))
+            self._event_meta.append((job.stamp, self.db.stamp(cand.row), res.yaw_deg))
             if not res.accepted:
-                log.debug("loop %d -> %d rejected: %s", kf.id, cand.kf_id, res.reason)
+                log.debug("loop %d -> %d rejected: %s", job.kf_id, cand.kf_id, res.reason)
                 continue
             log.info(
                 "loop %d -> %d accepted: sc %.3f fitness %.3f m overlap %.2f yaw %.1f deg",
-                kf.id, cand.kf_id, cand.distance, res.fitness, res.overlap, res.yaw_deg,
+                job.kf_id, cand.kf_id, cand.distance, res.fitness, res.overlap, res.yaw_deg,
             )  # fmt: skip
-            self._last_accepted = kf.id
+            self._last_accepted = job.kf_id
             noise = robust_noise(information_noise(res.info), cfg.robust, cfg.robust_param)
             return [
                 gtsam.BetweenFactorPose3(
-                    key(cand.kf_id), key(kf.id), pose3(res.T_target_source), noise
+                    key(cand.kf_id), key(job.kf_id), pose3(res.T_target_source), noise
                 )
             ]
         return []
+
+    def _verify_candidates(
+        self, kf: Keyframe, candidates: list[Candidate], graph: GraphView
+    ) -> list[gtsam.BetweenFactorPose3]:
+        """Verify ``kf``'s candidates here and now (the in-process path of on_keyframe)."""
+        job = self._make_job(kf, candidates, graph)
+        return self._finish_job(job, run_job(job, self.verify_params))
+
+    def _gate(self, graph: GraphView, kf: Keyframe, cand_id: int) -> OdometryGate:
+        """The odometry-consistency gate of candidate ``cand_id`` from the estimates now."""
+        cfg = self.config
+        T_est = np.linalg.inv(self._estimate_id(graph, cand_id)) @ self._estimate(graph, kf)
+        travelled = abs(self._travel.get(kf.id, 0.0) - self._travel.get(cand_id, 0.0))
+        allowed = cfg.consistency_base + cfg.consistency_ratio * travelled
+        return OdometryGate(
+            T_est, allowed, travelled, cfg.consistency_yaw_deg, cfg.consistency_ratio >= 0
+        )
 
     def _unreachable(self, graph: GraphView, kf: Keyframe, cand_id: int, init: np.ndarray) -> str:
         """Why no registration from ``init`` could pass both the verification's and the
@@ -526,30 +608,6 @@ class LoopClosurePlugin:
             return (
                 f"inconsistent with odometry: guess turns {min(turns):.0f} deg from the "
                 f"estimate (> {margin:.0f} deg), not registered"
-            )
-        return ""
-
-    def _inconsistency(
-        self, graph: GraphView, kf: Keyframe, cand_id: int, T_cand_cur: np.ndarray
-    ) -> str:
-        """Why the loop contradicts the odometry (empty string when it does not)."""
-        cfg = self.config
-        if cfg.consistency_ratio < 0:
-            return ""
-        T_est = np.linalg.inv(self._estimate_id(graph, cand_id)) @ self._estimate(graph, kf)
-        jump = float(np.linalg.norm(T_est[:3, 3] - T_cand_cur[:3, 3]))
-        travelled = abs(self._travel.get(kf.id, 0.0) - self._travel.get(cand_id, 0.0))
-        allowed = cfg.consistency_base + cfg.consistency_ratio * travelled
-        if jump > allowed:
-            return (
-                f"inconsistent with odometry: moves {jump:.1f} m from the estimate "
-                f"(allowed {allowed:.1f} m after {travelled:.0f} m)"
-            )
-        turn = abs(np.degrees(wrap_angle(yaw_of(T_cand_cur) - yaw_of(T_est))))
-        if turn > cfg.consistency_yaw_deg:
-            return (
-                f"inconsistent with odometry: turns {turn:.0f} deg from the estimate "
-                f"(allowed {cfg.consistency_yaw_deg:.0f} deg)"
             )
         return ""
 

@@ -46,6 +46,7 @@ from slam.registration.information import InformationConfig, information_from_he
 MAX_SURFACE_VARIATION = 0.05
 SHAPE_NEIGHBOURS = 10
 MIN_JUDGED_POINTS = 50
+COARSE_REGISTRATIONS = ("gicp", "vgicp")
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,8 @@ class VerifyParams:
     max_correspondence: float = 1.0
     coarse_voxel: float = 0.5
     coarse_max_correspondence: float = 2.0
+    coarse_registration: str = "gicp"
+    coarse_vgicp_resolution: float = 1.0
     global_search: float = 20.0
     max_offset: float = 20.0
     global_skip_overlap: float = 0.8
@@ -339,6 +342,30 @@ def _align(t: _Prepared, s: _Prepared, T: np.ndarray, corr: float, p: VerifyPara
     )  # fmt: skip
 
 
+@dataclass
+class _VoxelTarget:
+    """The coarse target for VGICP: a Gaussian voxel map and the coarse points (BEV search)."""
+
+    voxels: small_gicp.GaussianVoxelMap
+    points: np.ndarray
+
+
+def _coarse_voxel_map(fine: _Prepared, points: np.ndarray, p: VerifyParams) -> _VoxelTarget:
+    """The fine target cloud (its covariances) in voxels of coarse_vgicp_resolution m, and the
+    target thinned to coarse_voxel m (the bird's-eye-view image's points)."""
+    voxels = small_gicp.GaussianVoxelMap(p.coarse_vgicp_resolution)
+    voxels.insert(fine.cloud)
+    thin = np.asarray(small_gicp.voxelgrid_sampling(points, p.coarse_voxel).points())[:, :3]
+    return _VoxelTarget(voxels, thin)
+
+
+def _align_vgicp(t: _VoxelTarget, s: _Prepared, T: np.ndarray, corr: float, p: VerifyParams):
+    return small_gicp.align(
+        t.voxels, s.cloud, init_T_target_source=T, max_correspondence_distance=corr,
+        max_iterations=p.max_iterations, num_threads=p.num_threads,
+    )  # fmt: skip
+
+
 def _half_turn() -> np.ndarray:
     """4x4 rotation by 180 deg about the sensor's z axis."""
     return np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -366,7 +393,11 @@ def verify(
     src = np.ascontiguousarray(np.asarray(source, dtype=np.float64)[:, :3])
     ft, fs = _prepare(tgt, p.voxel, p.num_threads), _prepare(src, p.voxel, p.num_threads)
     coarse = p.coarse_voxel > p.voxel
-    if coarse:
+    vgicp = coarse and p.coarse_registration == "vgicp"
+    if vgicp:  # the target side is a voxel map of the fine cloud: no KD-tree, no covariances
+        cs = _prepare(src, p.coarse_voxel, p.num_threads)
+        ct = _coarse_voxel_map(ft, tgt, p)
+    elif coarse:
         ct, cs = (_prepare(tgt, p.coarse_voxel, p.num_threads),
                   _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
     judged = judged_points(fs, T0[:3, :3], p.max_judged)
@@ -403,7 +434,7 @@ def verify(
         score = alignment_score(judged, ft, T, p)
         kept = []
         if coarse:
-            c = _align(ct, cs, T, p.coarse_max_correspondence, p)
+            c = (_align_vgicp if vgicp else _align)(ct, cs, T, p.coarse_max_correspondence, p)
             c_score = alignment_score(judged, ft, c.T_target_source, p)
             if c_score[0] > score[0]:
                 T, score = np.array(c.T_target_source), c_score

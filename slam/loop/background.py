@@ -1,0 +1,162 @@
+"""Loop verification as self-contained jobs, run in the pipeline's process or in a worker.
+
+A :class:`KeyframeJob` holds everything verifying one keyframe's candidates needs (the
+clouds, the initial guesses and the odometry-gate data snapshotted when it was made), so
+:func:`run_job` is a pure function: the same job gives the same results in this process
+or in a worker process. :class:`VerifyPool` runs jobs in worker processes (spawned:
+small_gicp's registration holds the GIL, so a thread would not run beside the front end)
+and hands each result back at the job's ``due`` keyframe, waiting for it there if needed:
+which loop enters the graph at which keyframe never depends on timing, so runs are
+reproducible.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.loop.search import Candidate
+from slam.loop.verify import VerifyParams, VerifyResult, verify, wrap_angle, yaw_of
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryGate:
+    """The odometry-consistency gate of one candidate, from the estimates when it was
+    proposed: T_est (4x4, T_candidate_current of the estimates), allowed (m: base + ratio x
+    travelled), travelled (m), max_yaw_deg; ``enabled`` False lets every result through."""
+
+    T_est: np.ndarray
+    allowed: float
+    travelled: float
+    max_yaw_deg: float
+    enabled: bool = True
+
+
+def odometry_inconsistency(gate: OdometryGate, T_cand_cur: np.ndarray) -> str:
+    """Why a registered loop contradicts the odometry (empty string when it does not): it may
+    move the current keyframe at most ``allowed`` m from the estimate relative to the
+    candidate and turn it at most ``max_yaw_deg``."""
+    if not gate.enabled:
+        return ""
+    jump = float(np.linalg.norm(gate.T_est[:3, 3] - T_cand_cur[:3, 3]))
+    if jump > gate.allowed:
+        return (
+            f"inconsistent with odometry: moves {jump:.1f} m from the estimate "
+            f"(allowed {gate.allowed:.1f} m after {gate.travelled:.0f} m)"
+        )
+    turn = abs(np.degrees(wrap_angle(yaw_of(T_cand_cur) - yaw_of(gate.T_est))))
+    if turn > gate.max_yaw_deg:
+        return (
+            f"inconsistent with odometry: turns {turn:.0f} deg from the estimate "
+            f"(allowed {gate.max_yaw_deg:.0f} deg)"
+        )
+    return ""
+
+
+@dataclass
+class CandidateJob:
+    """One candidate: its search result, the initial T_candidate_current, the target cloud
+    (None when ``skip`` says why no registration could pass the gates) and its gate."""
+
+    cand: Candidate
+    init: np.ndarray
+    gate: OdometryGate
+    target: np.ndarray | None = None
+    skip: str = ""
+
+
+@dataclass
+class KeyframeJob:
+    """A keyframe's candidates to verify, best first, against its ``source`` cloud (None when
+    every candidate is skipped); ``due``: the keyframe id whose update receives the result."""
+
+    kf_id: int
+    stamp: float
+    candidates: list[CandidateJob]
+    source: np.ndarray | None
+    due: int
+    future: Future | None = field(default=None, repr=False, compare=False)
+
+    def payload(self) -> KeyframeJob:
+        """The job without its future (what is sent to a worker)."""
+        return KeyframeJob(self.kf_id, self.stamp, self.candidates, self.source, self.due)
+
+
+def run_job(job: KeyframeJob, params: VerifyParams) -> list[tuple[VerifyResult, float]]:
+    """Verify the candidates in order until one passes both the registration's and the
+    odometry gates; returns (result, registration ms or -1 when skipped) per candidate
+    tried. Pure: the same job gives the same results in any process."""
+    out: list[tuple[VerifyResult, float]] = []
+    for cj in job.candidates:
+        if cj.skip:
+            res = VerifyResult(
+                False, cj.init, np.inf, 0.0, np.degrees(cj.cand.yaw), np.zeros((6, 6)), cj.skip
+            )
+            out.append((res, -1.0))
+            continue
+        t0 = time.perf_counter()
+        res = verify(cj.target, job.source, cj.init, params)
+        ms = 1e3 * (time.perf_counter() - t0)
+        if res.accepted:
+            res.reason = odometry_inconsistency(cj.gate, res.T_target_source)
+            res.accepted = not res.reason
+        out.append((res, ms))
+        if res.accepted:
+            break
+    return out
+
+
+def _worker_init() -> None:
+    """A worker verifies with one thread and logs nothing of its own."""
+    logging.getLogger().setLevel(logging.WARNING)
+
+
+class VerifyPool:
+    """Worker processes that run :func:`run_job`; results are taken at the due keyframe.
+
+    The pool starts on the first job. A worker that dies (BrokenProcessPool) costs no loop:
+    its jobs are run here instead, with the same result.
+    """
+
+    def __init__(self, workers: int, params: VerifyParams):
+        self.workers, self.params = workers, params
+        self._pool: ProcessPoolExecutor | None = None
+        self.wait_ms = 0.0  # time the pipeline waited for due results (ms)
+
+    def submit(self, job: KeyframeJob) -> None:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_worker_init,
+            )  # fmt: skip
+        try:
+            job.future = self._pool.submit(run_job, job.payload(), self.params)
+        except (BrokenProcessPool, RuntimeError) as exc:
+            log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
+            job.future = None
+
+    def result(self, job: KeyframeJob) -> list[tuple[VerifyResult, float]]:
+        """The job's results, waiting for the worker if it is not done yet."""
+        if job.future is not None:
+            t0 = time.perf_counter()
+            try:
+                return job.future.result()
+            except BrokenProcessPool as exc:
+                log.warning("loop verification worker died (%s): verifying in-process", exc)
+            finally:
+                self.wait_ms += 1e3 * (time.perf_counter() - t0)
+                job.future = None
+        return run_job(job, self.params)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=False)
+            self._pool = None
