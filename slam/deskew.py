@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from slam.errors import ConfigError, InputError
@@ -40,11 +40,14 @@ def interpolate_pose(T_start_end: np.ndarray, s: np.ndarray) -> tuple[np.ndarray
 
 
 @njit(cache=True)
-def _deskew_block(xyz, time, period, theta, u, rho, u_rho, uu_rho, out, lo, hi):
-    """Points lo..hi-1 of ``_deskew_kernel`` in order, into ``out``."""
+def _deskew_kernel(xyz, time, period, theta, u, rho, u_rho, uu_rho):
+    """The closed form of ``deskew`` (backend "numpy") point by point in one pass; cos and sin
+    once per run of equal stamps (e.g. a firing column)."""
+    n = len(time)
+    out = np.empty((n, 3))
     s_last = np.nan
     c = sn = a = b = 0.0
-    for i in range(lo, hi):
+    for i in range(n):
         si = time[i] / period
         if si != s_last:
             s_last = si
@@ -77,21 +80,6 @@ def _deskew_block(xyz, time, period, theta, u, rho, u_rho, uu_rho, out, lo, hi):
             + along * u[2]
             + (si * rho[2] + sa * u_rho[2] + sb * uu_rho[2])
         )
-
-
-DESKEW_BLOCK = 16384  # points per parallel block (a 64-beam scan: 8 blocks on 2 threads)
-
-
-@njit(cache=True, parallel=True)
-def _deskew_kernel(xyz, time, period, theta, u, rho, u_rho, uu_rho):
-    """The closed form of ``deskew`` (backend "numpy") point by point; cos and sin once per
-    run of equal stamps (e.g. a firing column). Blocks of ``DESKEW_BLOCK`` points run in
-    parallel (each point's value does not depend on the block it falls in)."""
-    n = len(time)
-    out = np.empty((n, 3))
-    for blk in prange((n + DESKEW_BLOCK - 1) // DESKEW_BLOCK):
-        _deskew_block(xyz, time, period, theta, u, rho, u_rho, uu_rho, out, blk * DESKEW_BLOCK,
-                      min(n, (blk + 1) * DESKEW_BLOCK))  # fmt: skip
     return out
 
 

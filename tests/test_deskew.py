@@ -119,23 +119,3 @@ def test_compiled_deskew_on_simulated_scan(corridor_short):
     assert np.abs(fast - ref).max() < 1e-9
     with pytest.raises(ConfigError):
         deskew(scan.xyz, scan.time, T, PERIOD, backend="cuda")
-
-
-def test_parallel_blocks_equal_one_sequential_pass():
-    """The blocks of the parallel kernel give bit for bit the one-pass result, also where a
-    run of equal stamps straddles a block boundary."""
-    from slam import deskew as dk
-
-    rng = np.random.default_rng(5)
-    n = 3 * dk.DESKEW_BLOCK + 123
-    xyz = rng.uniform(-80, 80, (n, 3))
-    time = np.sort(np.repeat(rng.uniform(0, PERIOD, n // 64 + 1), 64)[:n])
-    T = pose([0.01, -0.02, 0.3], [1.2, 0.1, 0.05])
-    par = deskew(xyz, time, T, PERIOD)
-    rho, phi = dk.se3_log(T)
-    theta = float(np.linalg.norm(phi))
-    u = phi / theta
-    u_rho = np.cross(u, rho)
-    seq = np.empty_like(xyz)
-    dk._deskew_block(xyz, time, PERIOD, theta, u, rho, u_rho, np.cross(u, u_rho), seq, 0, n)
-    np.testing.assert_array_equal(par, seq)

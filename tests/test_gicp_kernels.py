@@ -177,3 +177,27 @@ def test_knn_tree_answers_as_a_kd_tree():
     d_ref, j_ref = cKDTree(xyz[:4]).query(q[:3], k=6)
     np.testing.assert_array_equal(j, j_ref)
     np.testing.assert_allclose(d, d_ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fused_gicp_terms_equal_the_two_kernels_bit_for_bit(seed):
+    """Information, H, b and cost in one pass = gicp_information then linearise, exactly."""
+    rng = np.random.default_rng(20 + seed)
+    n, m = 400, 300
+    T = se3_exp(rng.normal(0, [0.3] * 3 + [2.0] * 3))
+    src, tgt = rng.normal(0, 5.0, (n, 3)), rng.normal(0, 5.0, (m, 3))
+    A, B = rng.normal(size=(n, 3, 3)), rng.normal(size=(m, 3, 3))
+    S = A @ np.transpose(A, (0, 2, 1)) * 1e-2 + 1e-6 * np.eye(3)
+    Q = B @ np.transpose(B, (0, 2, 1)) * 1e-2 + 1e-6 * np.eye(3)
+    j = rng.integers(0, m, n)
+    j[rng.uniform(size=n) < 0.3] = m  # no correspondence
+    ok = np.flatnonzero(j < m)
+    p, q, W, H, b, cost = kernels.gicp_terms(T, src, S, tgt, Q, j)
+    W_ref = kernels.gicp_information(T[:3, :3], S, ok, Q, j[ok])
+    H_ref, b_ref, c_ref = kernels.linearise(T, src[ok], tgt[j[ok]], W_ref, None)
+    np.testing.assert_array_equal(p, src[ok])
+    np.testing.assert_array_equal(q, tgt[j[ok]])
+    np.testing.assert_array_equal(W, W_ref)
+    np.testing.assert_array_equal(H, H_ref)
+    np.testing.assert_array_equal(b, b_ref)
+    assert cost == c_ref

@@ -49,3 +49,20 @@ def test_edge_cases():
         voxel_thin(xyz * 1e10, 1e-12)
     with pytest.raises(InputError):
         voxel_thin(xyz[:, :2], 0.1)
+
+
+def test_thin_to_count_caps_dense_regions_first():
+    """The cap keeps the sparse region's points and thins the dense one."""
+    from slam.features.thinning import thin_to_count
+
+    rng = np.random.default_rng(3)
+    dense = rng.uniform(0, 4, (6000, 3)) * [1, 1, 0.05]  # a 4 x 4 m patch, ~375 points/m^2
+    sparse = np.c_[np.arange(200) * 0.5 + 10.0, np.zeros(200), np.zeros(200)]  # a line, 0.5 m
+    xyz = np.r_[dense, sparse]
+    keep = thin_to_count(xyz, 0.2, 300)
+    assert 250 < len(keep) <= 300
+    assert np.all(np.diff(keep) > 0)
+    assert (keep >= 6000).sum() == 200  # every sparse point kept, the patch thinned to < 100
+    np.testing.assert_array_equal(thin_to_count(xyz, 0.2, 10_000), np.arange(len(xyz)))
+    with pytest.raises(InputError):
+        thin_to_count(xyz, 0.2, 0)

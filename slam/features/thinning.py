@@ -98,3 +98,22 @@ def voxel_thin(xyz: np.ndarray, voxel: float, idx: np.ndarray | None = None) -> 
     if m < 0:
         raise InputError(f"voxel {voxel} m is too small for a cloud this large")
     return np.flatnonzero(keep)
+
+
+def thin_to_count(
+    xyz: np.ndarray, voxel: float, max_points: int, growth: float = 1.25
+) -> np.ndarray:
+    """Sorted positions of at most ``max_points`` of ``xyz``, spread evenly in space: voxel
+    thinning at ``voxel * growth**m`` (m), m the smallest that leaves no more than that
+    (m = 0: every point when there are few enough). A density-aware cap: dense regions lose
+    points first, sparse ones keep theirs."""
+    if max_points < 1:
+        raise InputError(f"max_points must be >= 1, got {max_points}")
+    if not (voxel > 0 and growth > 1):
+        raise InputError(f"need voxel > 0 m and growth > 1, got {voxel}, {growth}")
+    keep = np.arange(len(xyz))
+    size = float(voxel)
+    while len(keep) > max_points:
+        size *= growth
+        keep = voxel_thin(xyz, size)
+    return keep

@@ -431,7 +431,8 @@ class GicpTarget:
 # --------------------------------------------------------------------------- the solver
 
 # associate(T) -> (p source points (N, 3), q target points (N, 3), W (N, 3, 3) information in
-# the target frame, robust weights (N,) or None, squared Euclidean distances (N,))
+# the target frame, robust weights (N,) or None, squared Euclidean distances (N,)), optionally
+# followed by (H, b, cost) at T when the association computed them already (fused kernel)
 Associate = Callable[[np.ndarray], tuple]
 
 
@@ -522,14 +523,15 @@ def solve_weighted(
 
     for it in range(1, max_iterations + 1):
         iterations = it
-        p, q, W, w, sqd = associate(T)
+        terms = associate(T)
+        p, q, W, w, sqd = terms[:5]
         n_in = len(p)
         if n_in < min_inliers:
             raise RegistrationError(
                 f"only {n_in} correspondences within the distance limit (need {min_inliers});"
                 " the initial guess is too far off or the clouds do not overlap"
             )
-        H, b, cost = lin(T, p, q, W, w)
+        H, b, cost = terms[5] if len(terms) > 5 and not reference else lin(T, p, q, W, w)
         if prev_cost is not None and abs(prev_cost - cost) <= fitness_epsilon * max(cost, 1e-12):
             reason = "fitness"
             break
@@ -631,9 +633,10 @@ def gicp_align(
         if reference:
             C = np.einsum("ij,njk,lk->nil", R, source_covs[ok], R) + target.covs[j[ok]]  # (3)
             return src[ok], target.points[j[ok]], np.linalg.inv(C), None, d[ok] ** 2  # (5)
-        ok_idx = np.flatnonzero(ok)
-        W = kernels.gicp_information(R, source_covs, ok_idx, target.covs, j[ok_idx])
-        return src[ok_idx], target.points[j[ok_idx]], W, None, d[ok_idx] ** 2
+        # eqs. (3)-(5) and H, b, cost in one pass over the correspondences
+        j = np.where(ok, j, len(target.points))  # the "no correspondence" index, as cKDTree's
+        p, q, W, H, b, cost = kernels.gicp_terms(T, src, source_covs, target.points, target.covs, j)
+        return p, q, W, None, d[ok] ** 2, (H, b, cost)
 
     init = np.eye(4) if init_T is None else np.asarray(init_T, dtype=np.float64)
     return solve_weighted(

@@ -167,3 +167,89 @@ def neighbour_covariances(xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
     out = np.empty((len(idx), 3, 3))
     _neighbour_covariances(_c(xyz), np.ascontiguousarray(idx, dtype=np.int64), out)
     return out
+
+
+@njit(cache=True)
+def _gicp_terms(T, src, src_covs, tgt_pts, tgt_covs, j, n_tgt, p, q, W, H, b):
+    """``_information`` then ``_accumulate`` (unit weights) fused in one pass over the source
+    points that have a correspondence (j < n_tgt), in their order: the same arithmetic in
+    the same order, so the same W, H, b and cost to the bit; p, q, W get the inlier rows."""
+    R = T[:3, :3]
+    t = T[:3, 3]
+    C = np.empty((3, 3))
+    RS = np.empty((3, 3))
+    e = np.empty(3)
+    J = np.empty((3, 6))
+    WJ = np.empty((3, 6))
+    cost = 0.0
+    m = 0
+    for i in range(len(src)):
+        jj = j[i]
+        if jj >= n_tgt:
+            continue
+        S = src_covs[i]
+        Q = tgt_covs[jj]
+        for r in range(3):
+            for c in range(3):
+                RS[r, c] = R[r, 0] * S[0, c] + R[r, 1] * S[1, c] + R[r, 2] * S[2, c]
+        for r in range(3):
+            for c in range(3):
+                C[r, c] = RS[r, 0] * R[c, 0] + RS[r, 1] * R[c, 1] + RS[r, 2] * R[c, 2] + Q[r, c]
+        a00 = C[1, 1] * C[2, 2] - C[1, 2] * C[2, 1]
+        a01 = C[0, 2] * C[2, 1] - C[0, 1] * C[2, 2]
+        a02 = C[0, 1] * C[1, 2] - C[0, 2] * C[1, 1]
+        det = C[0, 0] * a00 + C[1, 0] * a01 + C[2, 0] * a02
+        inv = 1.0 / det
+        Wm = W[m]
+        Wm[0, 0] = a00 * inv
+        Wm[0, 1] = a01 * inv
+        Wm[0, 2] = a02 * inv
+        Wm[1, 0] = (C[1, 2] * C[2, 0] - C[1, 0] * C[2, 2]) * inv
+        Wm[1, 1] = (C[0, 0] * C[2, 2] - C[0, 2] * C[2, 0]) * inv
+        Wm[1, 2] = (C[0, 2] * C[1, 0] - C[0, 0] * C[1, 2]) * inv
+        Wm[2, 0] = (C[1, 0] * C[2, 1] - C[1, 1] * C[2, 0]) * inv
+        Wm[2, 1] = (C[0, 1] * C[2, 0] - C[0, 0] * C[2, 1]) * inv
+        Wm[2, 2] = (C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]) * inv
+        px, py, pz = src[i, 0], src[i, 1], src[i, 2]
+        p[m, 0], p[m, 1], p[m, 2] = px, py, pz
+        q[m, 0], q[m, 1], q[m, 2] = tgt_pts[jj, 0], tgt_pts[jj, 1], tgt_pts[jj, 2]
+        for r in range(3):
+            e[r] = R[r, 0] * px + R[r, 1] * py + R[r, 2] * pz + t[r] - q[m, r]
+        We0 = Wm[0, 0] * e[0] + Wm[0, 1] * e[1] + Wm[0, 2] * e[2]
+        We1 = Wm[1, 0] * e[0] + Wm[1, 1] * e[1] + Wm[1, 2] * e[2]
+        We2 = Wm[2, 0] * e[0] + Wm[2, 1] * e[1] + Wm[2, 2] * e[2]
+        cost += e[0] * We0 + e[1] * We1 + e[2] * We2
+        for r in range(3):
+            J[r, 0] = -R[r, 1] * pz + R[r, 2] * py
+            J[r, 1] = R[r, 0] * pz - R[r, 2] * px
+            J[r, 2] = -R[r, 0] * py + R[r, 1] * px
+            J[r, 3] = R[r, 0]
+            J[r, 4] = R[r, 1]
+            J[r, 5] = R[r, 2]
+        for r in range(3):
+            for c in range(6):
+                WJ[r, c] = Wm[r, 0] * J[0, c] + Wm[r, 1] * J[1, c] + Wm[r, 2] * J[2, c]
+        for r in range(6):
+            b[r] += J[0, r] * We0 + J[1, r] * We1 + J[2, r] * We2
+            for c in range(r, 6):
+                H[r, c] += J[0, r] * WJ[0, c] + J[1, r] * WJ[1, c] + J[2, r] * WJ[2, c]
+        m += 1
+    for r in range(6):
+        for c in range(r):
+            H[r, c] = H[c, r]
+    return cost, m
+
+
+def gicp_terms(T, src, src_covs, tgt_pts, tgt_covs, j):
+    """GICP association terms at T in one pass: (p, q, W, H, b, cost) of the source points
+    with a correspondence (``j[i] < len(tgt_pts)``; cKDTree's "missing" index), in source
+    order; equal to ``gicp_information`` on them followed by ``linearise`` (unit weights)."""
+    n_tgt = len(tgt_pts)
+    n = len(src)
+    p, q, W = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
+    H, b = np.zeros((6, 6)), np.zeros(6)
+    cost, m = _gicp_terms(
+        _c(T), _c(src), _c(src_covs), _c(tgt_pts), _c(tgt_covs),
+        np.ascontiguousarray(j, dtype=np.int64), n_tgt, p, q, W, H, b,
+    )  # fmt: skip
+    return p[:m], q[:m], W[:m], H, b, float(cost)
