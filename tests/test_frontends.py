@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from slam.config import load_config
+from slam.errors import ConfigError
 from slam.frontend import Frontend
 from slam.io.source import open_source
 from slam.plugins import instantiate
@@ -101,3 +102,26 @@ def test_frontend_survives_empty_and_tiny_scans(name):
     tiny = fe.process(Scan(0.1, np.random.default_rng(0).normal(size=(20, 3)) * 5))
     assert "skipped" in tiny.extras
     assert np.all(np.isfinite(tiny.info)) and tiny.info.shape == (6, 6)
+
+
+def test_registration_point_cap_keeps_the_corridor_accurate(corridor):
+    """max_registration_points: GICP on a density-aware subset (here half the corridor's
+    ~630 features), covariances from all features, the map fed with all of them."""
+    scans, gt_stamps, gt = corridor
+    fe = instantiate(
+        "slam.frontends", {"name": "improved_floam", "max_registration_points": 300}, "frontend"
+    )
+    outs = [fe.process(s) for s in scans]
+    assert all(o.extras["n_registered"] <= 300 for o in outs)
+    assert np.mean([o.extras["n_edges"] + o.extras["n_planes"] for o in outs]) > 450
+    idx = np.clip(np.searchsorted(gt_stamps, [o.stamp for o in outs]), 0, len(gt) - 1)
+    G = np.linalg.inv(gt[idx[0]]) @ gt[idx]
+    err = np.linalg.norm(np.array([o.pose for o in outs])[:, :3, 3] - G[:, :3, 3], axis=1)
+    assert err.max() < 0.03, err.max()
+    assert len(fe.map) > 10 * 300  # the map got every feature, not only the registered ones
+    placeholder = np.eye(3) * fe.cfg.plane_voxel**2  # replaced by the map's eq. (1)
+    assert not np.any(np.all(np.isclose(fe.map.covs, placeholder, rtol=0, atol=1e-12), axis=(1, 2)))
+    with pytest.raises(ConfigError):
+        instantiate(
+            "slam.frontends", {"name": "improved_floam", "max_registration_points": -1}, "frontend"
+        )
