@@ -52,17 +52,27 @@ def test_edge_cases():
 
 
 def test_thin_to_count_caps_dense_regions_first():
-    """The cap keeps the sparse region's points and thins the dense one."""
+    """The cap thins the dense patch and keeps the sparse line (inputs already thinned at
+    their voxel, as the feature sets are)."""
     from slam.features.thinning import thin_to_count
 
     rng = np.random.default_rng(3)
-    dense = rng.uniform(0, 4, (6000, 3)) * [1, 1, 0.05]  # a 4 x 4 m patch, ~375 points/m^2
-    sparse = np.c_[np.arange(200) * 0.5 + 10.0, np.zeros(200), np.zeros(200)]  # a line, 0.5 m
+    g = np.arange(50) * 0.2 + 0.1
+    dense = np.c_[np.repeat(g, 50), np.tile(g, 50), rng.normal(0, 0.01, 2500)]  # 1 per voxel
+    sparse = np.c_[np.arange(200) * 2.0 + 20.0, np.zeros(200), np.zeros(200)]
     xyz = np.r_[dense, sparse]
-    keep = thin_to_count(xyz, 0.2, 300)
-    assert 250 < len(keep) <= 300
+    (keep,) = thin_to_count([xyz], [0.2], 1000)
+    assert 850 < len(keep) <= 1000
     assert np.all(np.diff(keep) > 0)
-    assert (keep >= 6000).sum() == 200  # every sparse point kept, the patch thinned to < 100
-    np.testing.assert_array_equal(thin_to_count(xyz, 0.2, 10_000), np.arange(len(xyz)))
+    assert (keep >= 2500).sum() == 200  # every sparse point kept
+    (every,) = thin_to_count([xyz], [0.2], 10_000)
+    np.testing.assert_array_equal(every, np.arange(len(xyz)))
+    # two parts grow coarser together: the fine line (0.05 m voxel) keeps its share
+    line = np.c_[np.arange(1000) * 0.05, np.full(1000, 20.0), np.zeros(1000)]
+    k_patch, k_line = thin_to_count([dense, line], [0.2, 0.05], 1500)
+    assert 1200 < len(k_patch) + len(k_line) <= 1500
+    assert 350 < len(k_line) < 750 and 700 < len(k_patch) < 1300
     with pytest.raises(InputError):
-        thin_to_count(xyz, 0.2, 0)
+        thin_to_count([xyz], [0.2], 0)
+    with pytest.raises(InputError):
+        thin_to_count([xyz, line], [0.2], 100)

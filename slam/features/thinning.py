@@ -101,19 +101,24 @@ def voxel_thin(xyz: np.ndarray, voxel: float, idx: np.ndarray | None = None) -> 
 
 
 def thin_to_count(
-    xyz: np.ndarray, voxel: float, max_points: int, growth: float = 1.25
-) -> np.ndarray:
-    """Sorted positions of at most ``max_points`` of ``xyz``, spread evenly in space: voxel
-    thinning at ``voxel * growth**m`` (m), m the smallest that leaves no more than that
-    (m = 0: every point when there are few enough). A density-aware cap: dense regions lose
-    points first, sparse ones keep theirs."""
+    parts: list[np.ndarray], voxels: list[float], max_points: int, growth: float = 1.1
+) -> list[np.ndarray]:
+    """Sorted positions of at most ``max_points`` points of the clouds ``parts`` together,
+    spread evenly in space: each part voxel-thinned at ``voxels[i] * s``, with s the first
+    of sqrt(n / max_points) * growth**m (m = 0, 1, ...; n the points of all parts; surface
+    samples thin as 1/s^2) that leaves no more than that; every point when there are few
+    enough. A density-aware cap that keeps the parts' proportions (edge and plane features
+    grow coarser together): dense regions lose points first, sparse ones keep theirs."""
     if max_points < 1:
         raise InputError(f"max_points must be >= 1, got {max_points}")
-    if not (voxel > 0 and growth > 1):
-        raise InputError(f"need voxel > 0 m and growth > 1, got {voxel}, {growth}")
-    keep = np.arange(len(xyz))
-    size = float(voxel)
-    while len(keep) > max_points:
-        size *= growth
-        keep = voxel_thin(xyz, size)
+    if len(parts) != len(voxels) or not all(v > 0 for v in voxels) or not growth > 1:
+        raise InputError(f"need one voxel > 0 m per part and growth > 1, got {voxels}, {growth}")
+    keep = [np.arange(len(x)) for x in parts]
+    n = sum(len(k) for k in keep)
+    if n <= max_points:
+        return keep
+    scale = float(np.sqrt(n / max_points)) / growth
+    while sum(len(k) for k in keep) > max_points:
+        scale *= growth
+        keep = [voxel_thin(x, v * scale) for x, v in zip(parts, voxels, strict=True)]
     return keep
