@@ -14,7 +14,8 @@ augmented queries) as a ratio to Scan Context's, and, separately, GICP verificat
 scan 0 against scans 2-17 m ahead, both ways, and pairs of different places), started from
 the Scan Context yaw alone as in the plugin (clouds voxelised at 0.25 m as the plugin stores
 them): accepted / false loops, transform error against small_gicp's fine alignment, ms per
-candidate; with ``--baseline-rev`` the same for ``slam/loop/verify.py`` of that commit.
+candidate (wall and CPU), for both coarse stages (VGICP, GICP); with ``--baseline-rev`` the
+same for ``slam/loop/verify.py`` of that commit.
 """
 
 from __future__ import annotations
@@ -124,18 +125,30 @@ def _baseline_verify(rev: str):
     return mod.verify
 
 
+def _coarse(name: str):
+    """verify with the coarse stage ``name`` (gicp / vgicp)."""
+    import dataclasses
+
+    from slam.loop.verify import VerifyParams
+
+    params = dataclasses.replace(VerifyParams(), coarse_registration=name)
+    return lambda t, s, init: verify(t, s, init, params)
+
+
 def bench_real(baseline_rev: str | None) -> None:
     pairs = real_pairs()
-    impls = [("this", verify)] + ([(baseline_rev, _baseline_verify(baseline_rev))]
-                                 if baseline_rev else [])  # fmt: skip
+    impls = [("this, coarse gicp (default)", _coarse("gicp")),
+             ("this, coarse vgicp", _coarse("vgicp"))]  # fmt: skip
+    impls += [(baseline_rev, _baseline_verify(baseline_rev))] if baseline_rev else []
     for label, fn in impls:
         print(f"--- verify of {label}")
         acc = false = true_pairs = 0
-        errs, ms = [], []
+        errs, ms, cpu = [], [], []
         for name, t, s, ref in pairs:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             res = fn(t, s, yaw_matrix(0.0))
             ms.append(1e3 * (time.perf_counter() - t0))
+            cpu.append(1e3 * (time.thread_time() - c0))
             line = f"{name:24s} {'accepted' if res.accepted else 'rejected':8s} {ms[-1]:6.0f} ms"
             if ref is not None:
                 true_pairs += 1
@@ -153,7 +166,8 @@ def bench_real(baseline_rev: str | None) -> None:
         worst = f"{100 * e[:, 0].max():.1f} cm / {e[:, 1].max():.2f} deg" if len(e) else "-"
         print(
             f"accepted {acc}/{true_pairs} true pairs, false {false}/{len(pairs) - true_pairs}, "
-            f"worst accepted error {worst}, {np.mean(ms):.0f} ms/candidate"
+            f"worst accepted error {worst}, {np.mean(ms):.0f} ms/candidate "
+            f"({np.mean(cpu):.0f} ms CPU)"
         )
 
 
@@ -208,14 +222,15 @@ def main() -> None:
         if descriptor == "scan_context":
             sc_search, sc_hits = search_ms, hits
 
-    ver_ms = []
+    ver_cpu: dict[str, list[float]] = {"vgicp": [], "gicp": []}
     for _ in range(10):
         a = box_cloud(rng, 8000)
         yaw = rng.uniform(-np.pi, np.pi)
         b = rotate(a, -yaw, rng)
-        t = time.perf_counter()
-        verify(a, b, yaw_matrix(yaw + np.radians(4)))
-        ver_ms.append(1e3 * (time.perf_counter() - t))
+        for name, samples in ver_cpu.items():
+            c0 = time.thread_time()
+            _coarse(name)(a, b, yaw_matrix(yaw + np.radians(4)))
+            samples.append(1e3 * (time.thread_time() - c0))
 
     print(f"keyframes: {n}, points per cloud: 5000-10000, candidates under threshold: {sc_hits}")
     print(f"descriptor                 {desc_ms:7.2f} ms/keyframe")
@@ -230,7 +245,11 @@ def main() -> None:
             f"{det[-100:].mean():.2f}; ratio to scan_context "
             f"{det.mean() / det_by['scan_context'][0].mean():.2f})"
         )
-    print(f"verification (GICP)        {np.mean(ver_ms):7.2f} ms/candidate")
+    v, g = np.mean(ver_cpu["vgicp"]), np.mean(ver_cpu["gicp"])
+    print(
+        f"verification (CPU)         {v:7.2f} ms/candidate with the VGICP coarse stage, "
+        f"{g:.2f} with GICP (ratio {v / g:.2f})"
+    )
 
 
 if __name__ == "__main__":

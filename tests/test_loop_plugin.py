@@ -610,4 +610,22 @@ def test_worker_process_verification_equals_in_process_at_a_fixed_lag(rooms_run)
     assert [i for i, _ in got] == [i for i, _ in due] and len(got) == len(factors) > 0
     for (_, f), (_, g) in zip(got, due, strict=True):
         assert f.keys() == g.keys() and f.measured().equals(g.measured(), 0.0)
-    assert background.stats()["accepted"] == plugin.stats()["accepted"]
+    ours, ref = background.stats(), plugin.stats()
+    for name in ("accepted", "registered", "skipped", "verified"):
+        assert ours[name] == ref[name], name
+    assert {"detect_cpu_ms_last100", "verify_cpu_ms_last100", "wait_ms"} <= set(ours)
+
+
+def test_judged_shape_covariances_equal_the_curvature_reference():
+    """verify's shape test searches the prepared cloud's own KD-tree; the covariances equal
+    slam.features.curvature.local_covariances (which builds its own tree)."""
+    from slam.features.curvature import local_covariances
+    from slam.loop.verify import SHAPE_NEIGHBOURS, _prepare, _shape_covariances
+
+    rng = np.random.default_rng(4)
+    pts = np.concatenate([rng.uniform(-20, 20, (3000, 3)), rng.normal(0, 0.3, (500, 3))])
+    prepared = _prepare(pts, 0.25, 1)
+    query = np.arange(0, len(prepared.points), 7)
+    ours = _shape_covariances(prepared, query, SHAPE_NEIGHBOURS)
+    ref = local_covariances(prepared.points, SHAPE_NEIGHBOURS, query_idx=query)
+    np.testing.assert_allclose(ours, ref, rtol=1e-9, atol=1e-12)

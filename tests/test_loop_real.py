@@ -21,7 +21,7 @@ from slam.factors import GraphView
 from slam.io.folders import read_cloud
 from slam.loop.plugin import LoopClosurePlugin, auto_descriptor_params
 from slam.loop.scan_context import column_shift_distance, scan_context
-from slam.loop.verify import verify, yaw_matrix
+from slam.loop.verify import COARSE_REGISTRATIONS, VerifyParams, verify, yaw_matrix
 from slam.types import Keyframe
 
 KITTI_PAIRS = (3, 10, 15, 21)  # scan 0 against these: 2.3, 7.8, 11.9 and 16.8 m apart
@@ -125,6 +125,25 @@ def test_real_scans_of_different_places_do_not_verify(pair, kitti):
         for yaw in (0.0, np.pi):
             res = verify(target, source, yaw_matrix(yaw))
             assert not res.accepted, (name, yaw, res.overlap, res.fitness)
+
+
+def test_both_coarse_registrations_verify_real_revisits_alike_and_reject_other_places(pair, kitti):
+    """The coarse stage by KD-tree GICP (default) or by VGICP on the fine target's voxels
+    (cheaper): the same decisions, transforms within 1 cm / 0.05 deg of each other."""
+    import dataclasses
+
+    tgt, src, *_ = pair
+    scans, _, ref = kitti
+    params = {c: dataclasses.replace(VerifyParams(), coarse_registration=c)
+              for c in COARSE_REGISTRATIONS}  # fmt: skip
+    for i in (3, 15):
+        results = {c: verify(scans[i], scans[0], yaw_matrix(0.0), p) for c, p in params.items()}
+        assert all(r.accepted for r in results.values()), i
+        t, r = _err(results["vgicp"].T_target_source, results["gicp"].T_target_source)
+        assert t < 0.01 and r < 0.05, (i, t, r)
+    for target, source in ((scans[0], src), (scans[0], scans[10] + [0.0, 30.0, 0.0])):
+        assert not any(verify(target, source, yaw_matrix(0.0), p).accepted
+                       for p in params.values())  # fmt: skip
 
 
 # --------------------------------------------------------------------------- Scan Context

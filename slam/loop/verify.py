@@ -5,11 +5,12 @@ candidate's). Scan Context gives only a yaw, and two passes of the same street m
 10-20 m apart, so besides the given start a second start comes from a bird's-eye-view
 correlation of the two clouds (:func:`bev_translation`: occupancy images of the non-ground
 points, FFT cross-correlation over a few yaws around the guess). From every start a
-coarse-to-fine GICP schedule runs, and each stage's result is kept only if it raises the
-fine-scale score (share of structured source points that meet a target surface): a coarse
-stage with long correspondences can slide a correct start metres along a road, and such a
-result scores worse at the fine scale and is discarded; when the fine stage from the coarse
-result still lands in a worse basin than the coarse result's score promised, it also runs from
+coarse-to-fine GICP schedule runs (the fine stage's Hessian gives the information), and
+each stage's result is kept only if it raises the fine-scale score (share of structured
+source points that meet a target surface): a coarse stage with long correspondences can
+slide a correct start metres along a road, and such a result scores worse at the fine scale
+and is discarded; when the fine stage from the coarse result still lands in a worse basin
+than the coarse result's score promised, it also runs from
 the start itself and the better of the two is kept. The best-scoring result is judged:
 
 - overlap: share of structured, steep source points with a target neighbour within a
@@ -37,7 +38,6 @@ import numpy as np
 import scipy.fft
 import small_gicp
 
-from slam.features.curvature import local_covariances
 from slam.registration.information import InformationConfig, information_from_hessian
 
 # lambda_min / (lambda_1 + lambda_2 + lambda_3) of a point's neighbourhood below which it lies on
@@ -53,6 +53,12 @@ COARSE_REGISTRATIONS = ("gicp", "vgicp")
 class VerifyParams:
     """voxel / max_correspondence (m): the fine GICP stage; coarse_voxel /
     coarse_max_correspondence (m): the coarse stage (kept only if it improves the fine score).
+    coarse_registration: "gicp" (KD-tree GICP on both clouds thinned to coarse_voxel) or
+    "vgicp" (small_gicp's voxelised GICP of the source thinned to coarse_voxel against the
+    fine target's Gaussian voxels of coarse_vgicp_resolution m: no coarse target covariances
+    or KD-tree; on 35 urban-drive candidates and 13 real pairs the same decisions at 0.65-0.8x
+    the CPU, but in the simulated corridor it let a loop 4 deg off in roll through, so it is
+    not the default).
     global_search (m): radius of the bird's-eye-view translation search (0 = off), on a grid
     of bev_cell (m), over yaws of bev_yaw_offsets_deg around the guess. max_offset (m): a
     registered offset longer than this is no revisit (the two scans would barely overlap).
@@ -275,6 +281,18 @@ def _prepare(points: np.ndarray, voxel: float, num_threads: int) -> _Prepared:
     )
 
 
+def _shape_covariances(prepared: _Prepared, query_idx: np.ndarray, k: int) -> np.ndarray:
+    """(M, 3, 3) covariance (m^2) of the k nearest points of each queried point, searched in
+    the prepared cloud's own KD-tree (as slam.features.curvature.local_covariances, without
+    building another tree)."""
+    pts = prepared.points
+    k = min(k, len(pts))
+    idx, _ = prepared.tree.batch_knn_search(pts[query_idx], k, num_threads=1)
+    centred = pts[np.asarray(idx, dtype=np.int64)]
+    centred -= centred.mean(axis=1, keepdims=True)
+    return np.einsum("mki,mkj->mij", centred, centred) / max(k - 1, 1)
+
+
 def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> np.ndarray:
     """The source points a verification is judged on.
 
@@ -294,7 +312,7 @@ def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> n
         steep_idx = steep_idx[np.linspace(0, len(steep_idx) - 1, max_points).astype(np.intp)]
     # shape of the steep points only (neighbours among all points), from raw covariances:
     # small_gicp's are regularised to planes and carry no shape
-    cov = local_covariances(pts, SHAPE_NEIGHBOURS, query_idx=steep_idx)
+    cov = _shape_covariances(source, steep_idx, SHAPE_NEIGHBOURS)
     ev = np.linalg.eigvalsh(cov)  # ascending
     structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
     if structured.sum() >= MIN_JUDGED_POINTS:
