@@ -10,7 +10,9 @@ per frame); factor plugins and the back end are the pipeline's stage clocks, giv
 frame and per keyframe; the loop plugin's own detect/verify clocks when it reports them.
 ``frames/s`` is the whole pipeline; ``x small_gicp`` divides it by small_gicp's VGICP
 scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans, timed
-right after it on the same machine state.
+right after it on the same machine state. ``... CPU (first100/last100)``: CPU ms of each
+stage per frame over the first and last 100 frames (metrics.json stage_cpu_ms_*), which,
+unlike wall time, a loaded machine does not inflate.
 """
 
 from __future__ import annotations
@@ -77,10 +79,15 @@ def profile(scans: list[Scan], config: str) -> dict[str, float]:
             if key.endswith("_ms"):
                 row[f"{source.name} {key[:-3]}"] = float(value)
     m = metrics(pipe)
-    for name in ("frame_ms_first100", "frame_ms_last100", "frame_ms_max", "backend_ms_last100",
+    for name in ("frame_ms_first100", "frame_ms_last100", "frame_cpu_ms_first100",
+                 "frame_cpu_ms_last100", "frame_ms_max", "backend_ms_last100",
                  "backend_ms_max", "peak_memory_mb"):  # fmt: skip
         if m.get(name) is not None:
             row[name] = float(m[name])
+    # which stage grows: CPU ms per frame over the first and last 100 frames
+    for window in ("first100", "last100"):
+        for stage, value in m.get(f"stage_cpu_ms_{window}", {}).items():
+            row[f"{stage} CPU ({window})"] = float(value)
     row["pipeline total (per frame)"] = 1e3 * wall / n
     row["frames/s"] = n / wall
     row["keyframes"] = float(len(state.keyframes))
