@@ -629,3 +629,34 @@ def test_judged_shape_covariances_equal_the_curvature_reference():
     ours = _shape_covariances(prepared, query, SHAPE_NEIGHBOURS)
     ref = local_covariances(prepared.points, SHAPE_NEIGHBOURS, query_idx=query)
     np.testing.assert_allclose(ours, ref, rtol=1e-9, atol=1e-12)
+
+
+def test_verify_pool_without_a_worker_verifies_in_process_alike(monkeypatch):
+    """Where no worker process can start (e.g. inside a daemonic process), a job runs
+    in-process at its due keyframe, with the same result."""
+    background = importlib.import_module("slam.loop.background")
+    from slam.loop.search import Candidate
+
+    def no_workers(*args, **kwargs):
+        raise AssertionError("daemonic processes are not allowed to have children")
+
+    monkeypatch.setattr(background, "ProcessPoolExecutor", no_workers)
+    scene = _scene(_hall_boxes())
+    rng = np.random.default_rng(2)
+    target, source = (
+        _scan(scene, _pose(20.0, 6.0, 0.0), rng),
+        _scan(scene, _pose(21.0, 6.3, 0.1), rng),
+    )
+    gate = background.OdometryGate(np.eye(4), 5.0, 10.0, 45.0)
+    cand = Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+    job = background.KeyframeJob(
+        1, 1.0, [background.CandidateJob(cand, np.eye(4), gate, target)], source, 3
+    )
+    pool = background.VerifyPool(1, VerifyParams())
+    pool.submit(job)
+    assert job.future is None  # nothing started
+    ((res, ms),) = pool.result(job)
+    ((ref, _),) = background.run_job(job, VerifyParams())
+    assert res.accepted and ref.accepted and ms >= 0.0
+    np.testing.assert_array_equal(res.T_target_source, ref.T_target_source)
+    pool.close()

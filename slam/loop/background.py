@@ -129,19 +129,25 @@ class VerifyPool:
     def __init__(self, workers: int, params: VerifyParams):
         self.workers, self.params = workers, params
         self._pool: ProcessPoolExecutor | None = None
+        self._unavailable = False  # no worker could start: jobs run in-process
         self.wait_ms = 0.0  # time the pipeline waited for due results (ms)
 
     def submit(self, job: KeyframeJob) -> None:
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_init,
-            )  # fmt: skip
+        """Start the job in a worker; where no worker can start (e.g. inside a daemonic
+        process), it runs in-process at its due keyframe instead (same result)."""
+        job.future = None
+        if self._unavailable:
+            return
         try:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    self.workers, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_worker_init,
+                )  # fmt: skip
             job.future = self._pool.submit(run_job, job.payload(), self.params)
-        except (BrokenProcessPool, RuntimeError) as exc:
+        except (BrokenProcessPool, RuntimeError, AssertionError, OSError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
-            job.future = None
+            self._unavailable = True
 
     def result(self, job: KeyframeJob) -> list[tuple[VerifyResult, float]]:
         """The job's results, waiting for the worker if it is not done yet."""
