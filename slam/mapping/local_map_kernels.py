@@ -71,6 +71,23 @@ def rehash(keys, n, tkeys, tvals):
 
 
 @njit(cache=True)
+def _axis(key, a):
+    """Coordinate a (0, 1, 2) of a packed key."""
+    return (key >> (42 - 21 * a)) & MASK21
+
+
+@njit(cache=True)
+def _grow_box(state, ck, first):
+    """Widen the box of occupied cells (``state[BOX:]``) to cell ``ck`` (reset if first)."""
+    for a in range(3):
+        x = _axis(ck, a)
+        if first or x < state[BOX + a]:
+            state[BOX + a] = x
+        if first or x > state[BOX + 3 + a]:
+            state[BOX + 3 + a] = x
+
+
+@njit(cache=True)
 def _coarse_key(key, b):
     x = (key >> 42) // b
     y = ((key >> 21) & MASK21) // b
@@ -128,12 +145,7 @@ def insert(
                 ckey[c] = ck
                 chead[c] = -1
                 cnvox[c] = 0
-                cc = (ck >> 42, (ck >> 21) & MASK21, ck & MASK21)
-                for a in range(3):
-                    if c == 0 or cc[a] < state[BOX + a]:
-                        state[BOX + a] = cc[a]
-                    if c == 0 or cc[a] > state[BOX + 3 + a]:
-                        state[BOX + 3 + a] = cc[a]
+                _grow_box(state, ck, c == 0)
             c = ctvals[hc]
             vcell[v] = c
             vprev[v] = -1
@@ -225,7 +237,8 @@ def _remove_voxel(
         vcount[v] = vcount[w]
         for s in range(vcount[w]):
             vslots[v, s] = vslots[w, s]
-            vpts[v, s] = vpts[w, s]
+            for a in range(3):
+                vpts[v, s, a] = vpts[w, s, a]
             pvox[vslots[v, s]] = v
         vcell[v] = vcell[w]
         vprev[v] = vprev[w]
@@ -271,7 +284,8 @@ def remove_far(
 
     Coarse cells wholly inside the radius are skipped, voxels wholly outside go whole, and
     only points of the voxels the sphere cuts are tested one by one. The removed rows are
-    filled from the end (rows, voxels and cells keep dense ids). covs: (n, 3, 3) or (0, 3, 3).
+    filled with the surviving rows of the end (rows, voxels and cells keep dense ids).
+    covs: (n, 3, 3) or (0, 3, 3).
     """
     r2 = radius * radius
     nc = state[NC]
@@ -282,9 +296,8 @@ def remove_far(
     m = 0
     for c in range(nc):
         ck = ckey[c]
-        cc = (ck >> 42, (ck >> 21) & MASK21, ck & MASK21)
         for a in range(3):
-            lo[a] = (cc[a] * b - OFF) * voxel
+            lo[a] = (_axis(ck, a) * b - OFF) * voxel
             hi[a] = lo[a] + size
         dmin, dmax = _box_d2(lo, hi, origin)
         if dmax <= r2:
@@ -292,9 +305,8 @@ def remove_far(
         v = chead[c]
         while v != -1:
             key = vkey[v]
-            vc = (key >> 42, (key >> 21) & MASK21, key & MASK21)
             for a in range(3):
-                lo[a] = (vc[a] - OFF) * voxel
+                lo[a] = (_axis(key, a) - OFF) * voxel
                 hi[a] = lo[a] + voxel
             vmin, vmax = _box_d2(lo, hi, origin)
             if vmax > r2:
@@ -311,16 +323,16 @@ def remove_far(
                             rows[m] = j
                             m += 1
             v = vnext[v]
-    rows = np.sort(rows[:m])
     with_covs = covs.shape[0] > 0
-    for t in range(m - 1, -1, -1):  # descending: the last row is never a pending removal
+    for t in range(m):  # out of their voxels (rows stay where they are)
         r = rows[t]
         v = pvox[r]
         p = pslot[r]
         last = vcount[v] - 1
         moved = vslots[v, last]
         vslots[v, p] = moved
-        vpts[v, p] = vpts[v, last]
+        for a in range(3):
+            vpts[v, p, a] = vpts[v, last, a]
         pslot[moved] = p
         vcount[v] = last
         if last == 0:
@@ -343,27 +355,35 @@ def remove_far(
                 pvox,
                 state,
             )
-        L = state[N] - 1
-        if r != L:  # the last row takes the place
-            pts[r] = pts[L]
+    # the surviving rows of the last m fill the removed rows below n - m (no sort needed)
+    n1 = state[N] - m
+    gone = np.zeros(m, dtype=np.bool_)
+    for t in range(m):
+        if rows[t] >= n1:
+            gone[rows[t] - n1] = True
+    t = 0
+    for L in range(n1, state[N]):
+        if gone[L - n1]:
+            continue
+        while rows[t] >= n1:
+            t += 1
+        r = rows[t]
+        t += 1
+        for a in range(3):  # (scalar copies: slice assignments compile slowly)
+            pts[r, a] = pts[L, a]
             if with_covs:
-                covs[r] = covs[L]
-            pkeys[r] = pkeys[L]
-            pvox[r] = pvox[L]
-            pslot[r] = pslot[L]
-            vslots[pvox[r], pslot[r]] = r
-        state[N] = L
+                for c in range(3):
+                    covs[r, a, c] = covs[L, a, c]
+        pkeys[r] = pkeys[L]
+        pvox[r] = pvox[L]
+        pslot[r] = pslot[L]
+        vslots[pvox[r], pslot[r]] = r
+    state[N] = n1
     if m and state[NC]:  # shrink the box of occupied cells
         for a in range(6):
             state[BOX + a] = -1
         for c in range(state[NC]):
-            ck = ckey[c]
-            cc = (ck >> 42, (ck >> 21) & MASK21, ck & MASK21)
-            for a in range(3):
-                if c == 0 or cc[a] < state[BOX + a]:
-                    state[BOX + a] = cc[a]
-                if c == 0 or cc[a] > state[BOX + 3 + a]:
-                    state[BOX + 3 + a] = cc[a]
+            _grow_box(state, ckey[c], c == 0)
     return m
 
 
