@@ -132,20 +132,32 @@ class VerifyPool:
         self._unavailable = False  # no worker could start: jobs run in-process
         self.wait_ms = 0.0  # time the pipeline waited for due results (ms)
 
+    def start(self) -> None:
+        """Start the workers now (a spawned worker imports numpy, scipy and small_gicp for a
+        second or more: started at the first keyframe, it is ready by the first candidate)."""
+        if self._pool is not None or self._unavailable:
+            return
+        try:
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_worker_init,
+            )  # fmt: skip
+            for _ in range(self.workers):
+                self._pool.submit(_worker_init)  # processes start on the first submit
+        except (BrokenProcessPool, RuntimeError, AssertionError, OSError) as exc:
+            log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
+            self._unavailable = True
+
     def submit(self, job: KeyframeJob) -> None:
         """Start the job in a worker; where no worker can start (e.g. inside a daemonic
         process), it runs in-process at its due keyframe instead (same result)."""
         job.future = None
+        self.start()
         if self._unavailable:
             return
         try:
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    self.workers, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_worker_init,
-                )  # fmt: skip
             job.future = self._pool.submit(run_job, job.payload(), self.params)
-        except (BrokenProcessPool, RuntimeError, AssertionError, OSError) as exc:
+        except (BrokenProcessPool, RuntimeError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
             self._unavailable = True
 
