@@ -27,6 +27,7 @@ corridor 18.2 -> 15.5, park 18.4 -> 16.8, urban 108.3 -> 94.7, KITTI-raw 118.7 -
 
 from __future__ import annotations
 
+import sys
 import threading
 from dataclasses import dataclass
 
@@ -62,6 +63,7 @@ class _Buffers(threading.local):
 
     def __init__(self) -> None:
         self.store: dict[str, np.ndarray] = {}
+        self.results: dict[str, np.ndarray] = {}
 
     def get(self, name: str, shape: int | tuple[int, ...], dtype=np.float64) -> np.ndarray:
         size = int(np.prod(shape))
@@ -69,6 +71,18 @@ class _Buffers(threading.local):
         if a is None or a.size < size:
             a = np.empty(size + size // 8, dtype=dtype)
             self.store[name] = a
+        return a[:size].reshape(shape)
+
+    def result(self, name: str, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        """An array to hand to the caller: a view of the block handed out last time under
+        this name once nothing refers to that block any more (no array, view or object of
+        the caller's can see it change), else of a new block, kept for next time."""
+        size = int(np.prod(shape))
+        a = self.results.get(name)
+        # references to a free block: the dict entry, the name a, getrefcount's argument
+        if a is None or a.size < size or sys.getrefcount(a) > 3:
+            a = np.empty(size + size // 8, dtype=dtype)
+            self.results[name] = a
         return a[:size].reshape(shape)
 
 
@@ -131,10 +145,11 @@ def range_image_knn(
         xyz, ring, buf.get("az", n), buf.get("el", n), buf.get("rank", n, np.int64), order,
         xyz_s, rng, el_s, az_s, cx, cy,
     )  # fmt: skip
-    idx = np.empty((n, k + 1), dtype=np.int64)
-    dist = np.empty((n, k))
-    certified = np.empty(n, dtype=np.bool_)
-    visits = np.empty(n, dtype=np.int64)
+    # the arrays returned: last scan's again once the caller has dropped them (same size)
+    idx = buf.result("idx", (n, k + 1), np.int64)
+    dist = buf.result("dist", (n, k))
+    certified = buf.result("certified", (n,), np.bool_)
+    visits = buf.result("visits", (n,), np.int64)
     if spread > MAX_RING_SPREAD:  # not beams: the window would be slow, not wrong
         idx[:] = -1
         dist[:] = np.inf
