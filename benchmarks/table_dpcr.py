@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/table_dpcr"))
     ap.add_argument("--plan", default="rooms2d")
     ap.add_argument("--widths", type=float, nargs="*", default=list(WIDTHS))
-    ap.add_argument("--real-frames", type=int, default=1500)
+    ap.add_argument("--real-frames", type=int, default=1500, help="0: the whole logs")
     ap.add_argument("--real", nargs="*", default=["fr079", "intel"])
     ap.add_argument("--skip-width", action="store_true")
     ap.add_argument("--skip-compare", action="store_true")
@@ -168,7 +168,8 @@ def main(argv: list[str] | None = None) -> None:
     if not args.skip_compare:
         rows = []
         inputs = [(args.plan, log, gt, None)]
-        inputs += [(n, DATA / f"{n}.clf.bz2", None, args.real_frames) for n in args.real]
+        frames = args.real_frames or None  # 0: the whole log
+        inputs += [(n, DATA / f"{n}.clf.bz2", None, frames) for n in args.real]
         for name, path, truth, frames in inputs:
             for config in ("dpcr2d", "configs/icp2d.yaml"):
                 label = "DPCR" if config == "dpcr2d" else "ICP baseline"

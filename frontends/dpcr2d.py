@@ -45,6 +45,8 @@ __all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
 from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
 from slam.types import Odometry, Scan
 
+_PLANE = [3, 4, 2]  # (x, y, theta) in the 6x6 information's (rx, ry, rz, tx, ty, tz)
+
 
 def _submap_grid() -> GridConfig:
     # hits only over a sliding window: a cell is an obstacle once two scans hit it
@@ -61,7 +63,11 @@ class Dpcr2dConfig:
     first_registration / second_registration: switch either off (the ablation; both off
     = wheel odometry with maps); use_odometry: predict from the wheel odometry when the
     input has it (``Scan.odom``; else constant velocity) - along a corridor whose ends
-    the laser does not see, nothing else says how far the robot went; max_range (m):
+    the laser does not see, nothing else says how far the robot went; odometry_prior:
+    the wheel-odometry increment also enters the first registration's solve as a
+    weighted prior (``slam.registration.plicp``; noise model
+    ``slam.mapping.grid2d.planar_information`` of the step), not only as its start;
+    max_range (m):
     scan points beyond are dropped; min_points: fewest points of a usable scan;
     max_step (m, deg): a registration moving the pose further than this from the
     prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
@@ -76,6 +82,7 @@ class Dpcr2dConfig:
     first_registration: bool = True
     second_registration: bool = True
     use_odometry: bool = True
+    odometry_prior: bool = True
     max_range: float = 30.0
     min_points: int = 30
     max_step: float = 0.5
@@ -122,6 +129,7 @@ class Dpcr2d:
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0}
         self._odom: np.ndarray | None = None
+        self._odom_err2 = np.zeros(2)  # running wheel-odometry error^2 (m^2, rad^2)
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -151,20 +159,40 @@ class Dpcr2d:
             self.submap.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
 
     def _refresh_submap_lines(self) -> None:
-        obstacles = self.submap.obstacles()
-        lines = extract_lines(obstacles, self.submap.cfg.resolution, self.cfg.lines)
+        obstacles, hits = self.submap.obstacle_hits()
+        lines = extract_lines(obstacles, self.submap.cfg.resolution, self.cfg.lines, hits)
         self.submap_ref = LineReference.from_lines(lines) if len(obstacles) else None
         self.submap_refreshed_at = self.frame
 
     def _region_ref(self, region: _Region) -> LineReference | None:
         if self.frame - region.refreshed_at >= self.cfg.k2 or region.ref is None:
-            obstacles = region.grid.obstacles()
+            obstacles, hits = region.grid.obstacle_hits()
             if len(obstacles) < self.cfg.min_points:
                 return None
-            lines = extract_lines(obstacles, region.grid.cfg.resolution, self.cfg.lines)
+            lines = extract_lines(obstacles, region.grid.cfg.resolution, self.cfg.lines, hits)
             region.ref = LineReference.from_lines(lines)
             region.refreshed_at = self.frame
         return region.ref
+
+    def _prior_info(self, predicted: np.ndarray) -> np.ndarray:
+        """3x3 information (x, y, theta; the prediction's frame) of the wheel-odometry
+        step to ``predicted``: the model of ``planar_information`` (2 cm + 2 %, 0.5 deg +
+        2 %), widened to what this robot's odometry has shown (the running RMS of its
+        disagreement with the accepted registrations: FR079's wheels turn 2-5 deg off
+        the scans on many frames, a simulated or a good robot's stay within the model)."""
+        step = compose2d(inverse2d(self.pose), predicted)
+        info = planar_information(pose2_to_matrix(step))[np.ix_(_PLANE, _PLANE)]
+        model_t2, model_r2 = 1.0 / info[0, 0], 1.0 / info[2, 2]
+        var_t = max(model_t2, self._odom_err2[0])
+        var_r = max(model_r2, self._odom_err2[1])
+        return np.diag([1.0 / var_t, 1.0 / var_t, 1.0 / var_r])
+
+    def _learn_odometry_noise(self, predicted: np.ndarray, registered: np.ndarray) -> None:
+        """Running (about 20 frames) mean of the squared wheel-odometry error per frame,
+        translation (per axis) and heading, against the accepted registration."""
+        err = compose2d(inverse2d(predicted), registered)
+        sq = np.array([0.5 * float(err[0] ** 2 + err[1] ** 2), float(err[2]) ** 2])
+        self._odom_err2 = 0.95 * self._odom_err2 + 0.05 * sq
 
     def _plausible(self, res: PlicpResult, start: np.ndarray) -> bool:
         step = compose2d(inverse2d(start), res.pose)
@@ -181,7 +209,7 @@ class Dpcr2d:
             return
         t = time.perf_counter()
         ref = self._region_ref(region)
-        target = self.submap.obstacles()
+        target = self.submap.obstacle_points()
         if ref is None or len(target) < self.cfg.min_points:
             return
         res = plicp(target, ref, np.zeros(3), self.cfg.regional_plicp)
@@ -220,17 +248,23 @@ class Dpcr2d:
             if self.frame
             else self.pose
         )
+        from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
         self._odom = odom
         pose = predicted
         if len(pts) < cfg.min_points:
             extras["skipped"] = f"too few points ({len(pts)})"
         elif cfg.first_registration and self.submap_ref is not None and len(self.submap_ref):
             t = time.perf_counter()
-            res = plicp(pts, self.submap_ref, predicted, cfg.plicp)
+            prior = {}
+            if from_wheels and cfg.odometry_prior:
+                prior = {"prior": predicted, "prior_info": self._prior_info(predicted)}
+            res = plicp(pts, self.submap_ref, predicted, cfg.plicp, **prior)
             timings["first_ms"] = (time.perf_counter() - t) * 1e3
             extras.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
             if self._plausible(res, predicted):
                 pose = res.pose
+                if from_wheels:
+                    self._learn_odometry_noise(predicted, pose)
             else:
                 self.counts["rejected"] += 1
                 extras["rejected"] = 1

@@ -44,7 +44,7 @@ def fuse_scans(
     visit must not clear the first copy of a doubled wall and hide the inconsistency."""
     if len(poses) != len(scans):
         raise InputError(f"fuse_scans: {len(poses)} poses for {len(scans)} scans")
-    grid = OccupancyGrid(cfg or GridConfig())
+    grid = OccupancyGrid(cfg or GridConfig(subcell=False))  # cell centres: the measure
     for pose, pts in zip(poses, scans, strict=True):
         if len(pts):
             grid.add_scan(transform2d(pose, pts), pose[:2], free_space=free_space)

@@ -11,6 +11,12 @@ on the three parameters, exact rotation); (6) P_{k+1} = R(theta_k) P_k + t_k, eq
 the reference has not seen yet do not bias the pose; (8) repeat until the update is below
 the threshold or the iteration cap. Reference points on no line are matched
 point-to-point.
+
+With a ``prior`` (the wheel-odometry prediction and its information) the solve minimises
+J / sigma_p^2 + e^T Lambda e, e = prior^-1 o pose (the odometry residual of the increment):
+directions the matches leave weak or unconstrained (a corridor without visible ends)
+follow the odometry as much as its noise model says, instead of whatever the residual
+noise of a nearly flat cost gives.
 """
 
 from __future__ import annotations
@@ -32,9 +38,12 @@ class PlicpConfig:
     threshold (the threshold is 3 robust sigmas of the residuals); degeneracy_ratio:
     directions constrained less than this share of the strongest keep the prediction;
     point_matches: reference points on no line are matched point-to-point (False: only
-    line features count, as in the paper; isolated or sparse cells then pull nothing)."""
+    line features count, as in the paper; isolated or sparse cells then pull nothing);
+    point_sigma (m): noise of one point-to-line residual, which weighs the matches
+    against an odometry prior (only used with one)."""
 
     max_iterations: int = 30
+    point_sigma: float = 0.03
     tolerance: float = 1e-5
     max_distance: float = 0.5
     min_matches: int = 20
@@ -136,12 +145,24 @@ def plicp(
     ref: LineReference,
     initial: np.ndarray | None = None,
     cfg: PlicpConfig | None = None,
+    prior: np.ndarray | None = None,
+    prior_info: np.ndarray | None = None,
 ) -> PlicpResult:
     """Register ``target`` points (N, 2, own frame) to ``ref``; ``initial`` (x, y, theta)
-    the prediction. Returns the pose mapping target points into the reference frame."""
+    the prediction. ``prior`` (x, y, theta) with ``prior_info`` (3x3 information of
+    (x, y, theta) in the prior's own frame, 1/m^2 and 1/rad^2): a weighted residual
+    prior^-1 o pose added to the solve (default start: the prior). Returns the pose
+    mapping target points into the reference frame; ``info`` is the matches' alone."""
     cfg = cfg or PlicpConfig()
     target = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    if initial is None and prior is not None:
+        initial = prior
     pose = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64).copy()
+    if prior is not None:
+        prior = np.asarray(prior, dtype=np.float64)
+        if prior_info is None or np.shape(prior_info) != (3, 3):
+            raise ConfigError("plicp: a prior needs its 3x3 information prior_info")
+        prior_info = np.asarray(prior_info, dtype=np.float64)
     converged, it, degenerate = False, 0, 0
     if len(ref) == 0 or len(target) == 0:
         return PlicpResult(pose, np.inf, 0, 0, False, np.zeros((3, 3)))
@@ -156,7 +177,14 @@ def plicp(
         c = moved[idx].mean(axis=0)
         J = _jacobian(n, moved[idx] - c)
         w = _huber_weights(r, cfg.robust_floor)
-        delta, weak = _constrained_step(J, w, r, moved[idx] - c, cfg.degeneracy_ratio)
+        delta, weak = _constrained_step(
+            J,
+            w,
+            r,
+            moved[idx] - c,
+            cfg.degeneracy_ratio,
+            None if prior is None else _prior_terms(pose, c, prior, prior_info, cfg.point_sigma),
+        )
         degenerate = max(degenerate, weak)
         ct, st = np.cos(delta[2]), np.sin(delta[2])
         shift = c + delta[:2] - np.array([ct * c[0] - st * c[1], st * c[0] + ct * c[1]])
@@ -181,22 +209,57 @@ def plicp(
     return PlicpResult(pose, rmse, matches, it, ok, info, degenerate)
 
 
+def _prior_terms(
+    pose: np.ndarray, c: np.ndarray, prior: np.ndarray, info: np.ndarray, point_sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The odometry prior linearised in the step (dx, dy, d_theta) about the centroid
+    ``c``, in units of the matches' cost (x point_sigma^2): (A^T L A, A^T L e0), where
+    e0 = prior^-1 o pose in the prior's frame and A = de/d(step). A pose moved by the
+    step is x' = c + R(d_theta)(x - c) + d_t, theta' = theta + d_theta."""
+    cp, sp = np.cos(prior[2]), np.sin(prior[2])
+    Rt = np.array([[cp, sp], [-sp, cp]])  # R(prior)^T
+    e0 = np.concatenate([Rt @ (pose[:2] - prior[:2]), [float(wrap(pose[2] - prior[2]))]])
+    v = pose[:2] - c
+    A = np.zeros((3, 3))
+    A[:2, :2] = Rt
+    A[:2, 2] = Rt @ np.array([-v[1], v[0]])
+    A[2, 2] = 1.0
+    L = info * point_sigma**2
+    return A.T @ L @ A, A.T @ L @ e0
+
+
 def _constrained_step(
-    J: np.ndarray, w: np.ndarray, r: np.ndarray, rel: np.ndarray, ratio: float
+    J: np.ndarray,
+    w: np.ndarray,
+    r: np.ndarray,
+    rel: np.ndarray,
+    ratio: float,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, int]:
     """Weighted Gauss-Newton step that moves only along directions the matches constrain:
     the rotation column is scaled by the points' RMS distance L (all three in metres),
     and eigen-directions of J^T W J weaker than ``ratio`` x the strongest are left at the
-    prediction (a corridor seen without its ends: no slide along it). Returns the step
+    prediction (a corridor seen without its ends: no slide along it). ``prior``: the
+    odometry prior's (H, g) of :func:`_prior_terms`, added to the kept directions of the
+    matches (so that the directions left out follow the prior alone). Returns the step
     (dx, dy, d_theta) and the number of directions left out."""
     length = max(float(np.sqrt(np.mean(np.sum(rel**2, axis=1)))), 1e-3)
-    Js = J * np.array([1.0, 1.0, 1.0 / length])
+    scale = np.array([1.0, 1.0, 1.0 / length])
+    Js = J * scale
     H = (Js * w[:, None]).T @ Js
     g = (Js * w[:, None]).T @ r
     lam, V = np.linalg.eigh(H)
     keep = lam > ratio * max(lam[-1], 1e-12)
-    step = -V[:, keep] @ ((V[:, keep].T @ g) / lam[keep])
-    return step * np.array([1.0, 1.0, 1.0 / length]), int((~keep).sum())
+    if prior is None:
+        step = -V[:, keep] @ ((V[:, keep].T @ g) / lam[keep])
+        return step * scale, int((~keep).sum())
+    Vk = V[:, keep]
+    H_kept = (Vk * lam[keep]) @ Vk.T
+    g_kept = Vk @ (Vk.T @ g)
+    Hp = prior[0] * scale[:, None] * scale[None, :]  # in the scaled parameters
+    gp = prior[1] * scale
+    step = -np.linalg.solve(H_kept + Hp, g_kept + gp)
+    return step * scale, int((~keep).sum())
 
 
 def _huber_weights(r: np.ndarray, floor: float) -> np.ndarray:
