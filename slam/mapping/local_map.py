@@ -183,7 +183,7 @@ class VoxelHashMap:
         if len(self._tkeys) < 2 * (nv + n_more):
             self._tkeys, self._tvals = _table(nv + n_more)
             K.rehash(self._vkey, nv, self._tkeys, self._tvals)
-        nc_more = min(n_more, nv + n_more)  # a new cell needs a new voxel
+        nc_more = n_more  # each new cell comes with a new voxel of the batch
         if len(self._ckey) < nc + nc_more:
             for name in ("_ckey", "_chead", "_cnvox"):
                 setattr(self, name, _grown(getattr(self, name), nc + nc_more))
