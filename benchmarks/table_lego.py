@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -150,6 +151,10 @@ def run_job(job: dict) -> dict:
     from slam.config import load_config
     from slam.run import run_one
 
+    # a worker started from a background job inherits SIGINT ignored (POSIX): restore
+    # Python's handler so that `kill -INT <worker>` stops the run the way Ctrl-C does
+    # (the pipeline keeps and evaluates the frames done so far)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     saved = Path(job["out"]) / "row.json"
     if job.get("reuse") and saved.is_file():
         row = json.loads(saved.read_text())
