@@ -129,7 +129,9 @@ class Dpcr2d:
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0}
         self._odom: np.ndarray | None = None
-        self._odom_err2 = np.zeros(2)  # running wheel-odometry error^2 (m^2, rad^2)
+        # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
+        # the robot has shown its wheels (about 20 accepted frames)
+        self._odom_err2 = np.array([0.05**2, np.radians(2.0) ** 2])
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:

@@ -164,19 +164,26 @@ def test_dpcr_on_a_laserscan_bag(tmp_path):
 
 
 def test_odometry_prior_widens_to_the_wheels_it_sees():
-    """The wheel-odometry prior of the first registration starts at the model noise
-    (0.5 deg per still frame) and widens to the disagreement the accepted registrations
-    show: after 100 frames of wheels 3 deg off per frame (FR079's worst), its heading
-    sigma is ~3 deg; translation follows the same way."""
+    """The wheel-odometry prior of the first registration starts wide (2 deg, 5 cm per
+    frame) until the accepted registrations have shown the robot's wheels, then follows
+    their running disagreement: 100 frames of good wheels bring it down to the model
+    (0.5 deg, 2 cm per still frame); 100 frames of wheels 3 deg off per frame (FR079's
+    worst) widen its heading sigma to ~3 deg; translation follows the same way."""
     fe = Dpcr2d()
     still = np.zeros(3)
-    model = fe._prior_info(still)
-    assert np.degrees(1 / np.sqrt(model[2, 2])) == pytest.approx(0.5, rel=1e-6)
-    assert 1 / np.sqrt(model[0, 0]) == pytest.approx(0.02, rel=1e-6)
+
+    def sigmas():
+        info = fe._prior_info(still)
+        return 1 / np.sqrt(info[0, 0]), np.degrees(1 / np.sqrt(info[2, 2]))
+
+    assert sigmas() == pytest.approx((0.05, 2.0), rel=1e-6)
+    for _ in range(100):
+        fe._learn_odometry_noise(still, np.array([0.001, -0.001, np.radians(0.05)]))
+    assert sigmas() == pytest.approx((0.02, 0.5), rel=1e-6)
     rng = np.random.default_rng(0)
     for _ in range(100):
         off = np.array([rng.normal(0, 0.05), rng.normal(0, 0.05), rng.choice([-1, 1]) * 0.0524])
         fe._learn_odometry_noise(still, off)
-    info = fe._prior_info(still)
-    assert np.degrees(1 / np.sqrt(info[2, 2])) == pytest.approx(3.0, rel=0.1)
-    assert 1 / np.sqrt(info[0, 0]) == pytest.approx(0.05, rel=0.25)
+    sigma_t, sigma_deg = sigmas()
+    assert sigma_deg == pytest.approx(3.0, rel=0.1)
+    assert sigma_t == pytest.approx(0.05, rel=0.25)
