@@ -8,7 +8,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -451,12 +453,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _restore_interrupt() -> None:
+    """Let SIGINT interrupt a run that was started with it ignored (a job put in the
+    background by a non-interactive shell inherits SIG_IGN): `kill -INT` then stops it
+    cleanly with every output written, as Ctrl-C does in the foreground."""
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    ):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    _restore_interrupt()
     try:
         return args.func(args)
     except KeyboardInterrupt:
