@@ -476,6 +476,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _eprint("interrupted")
         return EXIT_INTERRUPTED
+    except SystemError as exc:  # Ctrl-C inside compiled code (numba loading a kernel)
+        from slam.pipeline import caused_by_interrupt
+
+        if not caused_by_interrupt(exc):
+            raise
+        _eprint("interrupted")
+        return EXIT_INTERRUPTED
     except (InputError, ConfigError) as exc:
         _eprint(f"error: {exc}")
         return EXIT_BAD_INPUT

@@ -403,6 +403,10 @@ class Pipeline:
             self._flush()  # a source shorter than the beam-model window
         except KeyboardInterrupt:
             st.stopped_by = "interrupted (Ctrl-C)"
+        except SystemError as exc:  # Ctrl-C inside a compiled call (numba loading a kernel)
+            if not caused_by_interrupt(exc):
+                raise
+            st.stopped_by = "interrupted (Ctrl-C)"
         except InputError as exc:
             st.stopped_by = f"bad input: {exc}"
         finally:
@@ -493,3 +497,16 @@ def _plain(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """True when ``exc`` was caused by a KeyboardInterrupt: a C extension (numba's dispatcher,
+    its cache loader) that sees Ctrl-C returns an error CPython reports as a SystemError
+    whose cause is the KeyboardInterrupt."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

@@ -91,9 +91,22 @@ def test_every_frame_follows_its_keyframe():
     assert np.abs(st.trajectory() - expected).max() < 1e-9
 
 
+def _interrupt_in_compiled_code() -> SystemError:
+    """What Ctrl-C inside numba's dispatcher (loading or compiling a kernel) raises."""
+    err = SystemError(
+        "CPUDispatcher(<function ring_order>) returned a result with an exception set"
+    )
+    err.__cause__ = KeyboardInterrupt()
+    return err
+
+
 @pytest.mark.parametrize(
     "stop, reason",
-    [(KeyboardInterrupt(), "interrupted"), (InputError("bad message 17"), "bad input")],
+    [
+        (KeyboardInterrupt(), "interrupted"),
+        (_interrupt_in_compiled_code(), "interrupted"),
+        (InputError("bad message 17"), "bad input"),
+    ],
 )
 def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
     poses = circle_odometry(n=40)
@@ -108,6 +121,12 @@ def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
         assert (tmp_path / name).stat().st_size > 0
     # the map holds the keyframes seen before the stop (streamed from their clouds)
     assert json.loads((tmp_path / "metrics.json").read_text())["map_points"] > 50 * 5
+
+
+def test_a_system_error_not_caused_by_ctrl_c_is_not_swallowed():
+    pipe = make_pipeline(circle_odometry(n=10))
+    with pytest.raises(SystemError):
+        pipe.run(scans(10, stop_with=SystemError("a real bug"), at=5))
 
 
 def test_disabled_factor_plugin_is_not_built():
