@@ -21,6 +21,7 @@ from slam import plugins
 from slam.config import SlamConfig
 from slam.errors import InputError
 from slam.factors import GraphView, pose3
+from slam.interrupts import StopRequest
 from slam.types import Keyframe, Scan, SkippedMessage
 
 log = logging.getLogger(__name__)
@@ -385,22 +386,29 @@ class Pipeline:
         and ignored). A :class:`SkippedMessage` (damaged message, no finite point) and a scan
         whose stamp is not after the previous one (duplicated, out of order) cost that frame
         only: counted by reason in ``state.skipped_messages``; with ``strict`` the first one
-        stops the run like unreadable input. A KeyboardInterrupt or an InputError from the
-        source stops the loop; the state so far is finalised (``state.stopped_by`` says why).
-        Never loses computed frames.
+        stops the run like unreadable input. Ctrl-C (SIGINT, when Python's default handler is
+        in place) stops the loop after the frame in hand, a second one at once; a
+        KeyboardInterrupt or an InputError from the source stops the loop; the state so far
+        is finalised (``state.stopped_by`` says why). Never loses computed frames.
         """
         st = self.state
         began = time.perf_counter()
         try:
-            for i, item in enumerate(scans):
-                if i < start:
-                    continue
-                if max_frames is not None and st.frames + len(self._buffer) >= max_frames:
-                    break
-                self._consume(item, strict)
-                if on_frame is not None:
-                    on_frame(i + 1 - start)  # messages consumed (frames and skipped ones)
-            self._flush()  # a source shorter than the beam-model window
+            with StopRequest() as stop:  # Ctrl-C: stop after the frame in hand
+                for i, item in enumerate(scans):
+                    if i < start:
+                        continue
+                    if max_frames is not None and st.frames + len(self._buffer) >= max_frames:
+                        break
+                    self._consume(item, strict)
+                    if on_frame is not None:
+                        on_frame(i + 1 - start)  # messages consumed (frames and skipped ones)
+                    if stop.requested:
+                        break
+                if stop.requested:
+                    st.stopped_by = "interrupted (Ctrl-C)"
+                else:
+                    self._flush()  # a source shorter than the beam-model window
         except KeyboardInterrupt:
             st.stopped_by = "interrupted (Ctrl-C)"
         except SystemError as exc:  # Ctrl-C inside a compiled call (numba loading a kernel)

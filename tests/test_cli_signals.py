@@ -1,5 +1,7 @@
 """A run started with SIGINT ignored (a background job of a non-interactive shell) can still
-be stopped by `kill -INT`, keeping its outputs, as Ctrl-C does in the foreground."""
+be stopped by `kill -INT`, keeping its outputs, as Ctrl-C does in the foreground; also when
+the signal arrives while numba compiles a kernel (a cold cache compiles in the first frames:
+the run stops after the frame in hand, never inside compiled code)."""
 
 from __future__ import annotations
 
@@ -25,9 +27,6 @@ def test_kill_int_stops_a_background_run_and_keeps_its_frames(tmp_path):
     from slam.sim.cache import ensure_sequence
 
     bag = ensure_sequence("corridor", frames=300).bag
-    # compile floam's kernels first (a cold numba cache compiles them in the first frames)
-    assert main(["run", str(bag), "--config", "floam", "--out", str(tmp_path / "warm"),
-                 "--quiet", "--max-frames", "3"]) == 0  # fmt: skip
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "slam.cli", "-v", "run", str(bag), "--config", "floam",
            "--out", str(out), "--quiet", "--set", "output.write_map=false"]  # fmt: skip

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -121,6 +123,33 @@ def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
         assert (tmp_path / name).stat().st_size > 0
     # the map holds the keyframes seen before the stop (streamed from their clouds)
     assert json.loads((tmp_path / "metrics.json").read_text())["map_points"] > 50 * 5
+
+
+class InterruptingFrontend(ScriptedFrontend):
+    """Sends itself SIGINT ``times`` times while processing frame ``at``."""
+
+    def __init__(self, poses, at, times):
+        super().__init__(poses)
+        self.at, self.times = at, times
+
+    def process(self, scan: Scan) -> Odometry:
+        if scan.index == self.at:
+            for _ in range(self.times):
+                os.kill(os.getpid(), signal.SIGINT)
+        return super().process(scan)
+
+
+@pytest.mark.parametrize("times, frames", [(1, 26), (2, 25)])
+def test_ctrl_c_stops_after_the_frame_in_hand_twice_at_once(times, frames):
+    """Ctrl-C never lands inside compiled code: the frame in hand finishes; a second one
+    aborts at once. Python's handler is back afterwards."""
+    poses = circle_odometry(n=40)
+    pipe = Pipeline(SlamConfig(factors={"prior": {}, "odometry": {}}),
+                    frontend=InterruptingFrontend(poses, at=25, times=times))  # fmt: skip
+    st = pipe.run(scans(40))
+    assert st.stopped_by.startswith("interrupted") and st.frames == frames
+    assert np.abs(st.trajectory()[:, :3, 3] - poses[:frames, :3, 3]).max() < 1e-6
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_a_system_error_not_caused_by_ctrl_c_is_not_swallowed():
