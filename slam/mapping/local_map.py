@@ -199,20 +199,7 @@ class VoxelHashMap:
             keys,
             points,
             COARSE,
-            self._tkeys,
-            self._tvals,
-            self._vkey,
-            self._vcount,
-            self._vslots,
-            self._vpts,
-            self._vcell,
-            self._vprev,
-            self._vnext,
-            self._ctkeys,
-            self._ctvals,
-            self._ckey,
-            self._chead,
-            self._cnvox,
+            *self._voxel_tables(),
             self._pkeys,
             self._pvox,
             self._pslot,
@@ -271,20 +258,7 @@ class VoxelHashMap:
             float(self.cfg.radius),
             float(self.cfg.voxel_size),
             COARSE,
-            self._tkeys,
-            self._tvals,
-            self._vkey,
-            self._vcount,
-            self._vslots,
-            self._vpts,
-            self._vcell,
-            self._vprev,
-            self._vnext,
-            self._ctkeys,
-            self._ctvals,
-            self._ckey,
-            self._chead,
-            self._cnvox,
+            *self._voxel_tables(),
             self._pts,
             covs,
             self._pkeys,
@@ -366,6 +340,26 @@ class VoxelHashMap:
         if k == 1:
             return d[:, 0], oi[:, 0]
         return d, oi
+
+    def _voxel_tables(self) -> tuple[np.ndarray, ...]:
+        """The voxel hash, the per-voxel point copies and lists, and the coarse-cell hash,
+        in the order the insertion and eviction kernels take them."""
+        return (
+            self._tkeys,
+            self._tvals,
+            self._vkey,
+            self._vcount,
+            self._vslots,
+            self._vpts,
+            self._vcell,
+            self._vprev,
+            self._vnext,
+            self._ctkeys,
+            self._ctvals,
+            self._ckey,
+            self._chead,
+            self._cnvox,
+        )
 
     def tree(self) -> cKDTree | None:
         """KD-tree over the current points, rebuilt only when the map changed."""
