@@ -216,10 +216,13 @@ class Pipeline:
         stored beam by beam in firing order, the per-point time from the azimuth."""
         if not (self.beams and len(scan)):
             return scan
-        if scan.ring is None:
-            scan.ring = self.beams.ring_of(scan.xyz)
-        if scan.time is None and self.beams.layout:
-            scan.time = self.beams.time_of(scan.xyz, self._period)
+        need_ring, need_time = scan.ring is None, scan.time is None and self.beams.layout
+        if need_ring or need_time:  # one pass: the azimuth computed once for both
+            ring, t = self.beams.fill(scan.xyz, self._period, ring=need_ring, time=need_time)
+            if need_ring:
+                scan.ring = ring
+            if need_time:
+                scan.time = t
         return scan
 
     def _feed(self, scan: Scan) -> None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
@@ -55,7 +56,8 @@ def _group_medians(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
 def _forward_azimuth(xyz: np.ndarray) -> tuple[np.ndarray, float, float] | None:
     """(u, sign, az0): the azimuth (rad) advanced along the stored order from the first point,
     the rotation's sign and the first point's azimuth; None for clouds whose azimuth steps
-    back often (firing order: every column) or that are too small for a layout."""
+    back often (firing order: every column) or that are too small for a layout.
+    The readable numpy reference of ``_forward_kernel`` (tests/test_sensor.py)."""
     if len(xyz) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
         return None
     az = np.arctan2(xyz[:, 1], xyz[:, 0])
@@ -72,6 +74,20 @@ def _forward_azimuth(xyz: np.ndarray) -> tuple[np.ndarray, float, float] | None:
     if not MIN_TURN_BEAMS <= n_est <= MAX_TURN_BEAMS + 1:
         return None
     return u, sign, float(az[0])
+
+
+def _forward_from_azimuth(az: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(u, sign) of ``_forward_azimuth`` from the azimuths (rad) already computed, through
+    the compiled ``_forward_kernel``; None where the reference returns None."""
+    if len(az) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
+        return None
+    u, sign, ok = _forward_kernel(az, np.radians(MAX_BACK_STEP_DEG))
+    if not ok or not np.isfinite(u[-1]):  # a non-finite point has no azimuth
+        return None
+    n_est = int(u[-1] // (2 * np.pi)) + 1
+    if not MIN_TURN_BEAMS <= n_est <= MAX_TURN_BEAMS + 1:
+        return None
+    return u, sign
 
 
 def _turn_spread(u: np.ndarray, elev: np.ndarray, phase: float) -> float:
@@ -106,8 +122,10 @@ def layout_seam(xyz: np.ndarray) -> float | None:
     return float(az0 + sign * cands[int(np.argmin(spread))])
 
 
-def layout_rings(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | None:
-    """(N,) ring of each point from the stored order when the cloud is stored beam by beam,
+def layout_rings_reference(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | None:
+    """The readable numpy reference of ``layout_rings`` (same result; tests/test_sensor.py).
+
+    (N,) ring of each point from the stored order when the cloud is stored beam by beam,
     else None. Ring 0 = lowest beam. seam: azimuth (rad) where the turns begin
     (``layout_seam``; searched when None).
 
@@ -148,6 +166,48 @@ def layout_rings(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | Non
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
         return None
     d = np.diff(_group_medians(elev, turn, n_turns))
+    if not (np.all(d <= 0.05) or np.all(d >= -0.05)):
+        return None
+    ring = turn if d.sum() >= 0 else n_turns - 1 - turn
+    return ring.astype(np.int16)
+
+
+def layout_rings(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | None:
+    """(N,) ring of each point from the stored order when the cloud is stored beam by beam,
+    else None. Ring 0 = lowest beam. seam: azimuth (rad) where the turns begin
+    (``layout_seam``; searched when None). Compiled; equal to ``layout_rings_reference``.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if seam is None:
+        seam = layout_seam(xyz)
+        if seam is None:
+            return None
+    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+    return _layout_rings_polar(az, elevation_deg(xyz), seam)
+
+
+def _layout_rings_polar(
+    az: np.ndarray,
+    elev: np.ndarray,
+    seam: float,
+    fa: tuple[np.ndarray, float] | None = None,
+) -> np.ndarray | None:
+    """``layout_rings`` from the azimuths (rad) and elevations (deg) of the points; fa: their
+    ``_forward_from_azimuth`` when already computed."""
+    if fa is None:
+        fa = _forward_from_azimuth(az)
+        if fa is None:
+            return None
+    u, sign = fa
+    shift = (sign * (seam - float(az[0]))) % (2 * np.pi)
+    turn, n_first, n_turns, counts, med = _layout_kernel(
+        u, elev, shift, np.radians(LAYOUT_SEAM_DEG), MIN_TURN_BEAMS, MAX_TURN_BEAMS + 1
+    )
+    if not MIN_TURN_BEAMS <= n_first <= MAX_TURN_BEAMS + 1:
+        return None
+    if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
+        return None
+    d = np.diff(med)
     if not (np.all(d <= 0.05) or np.all(d >= -0.05)):
         return None
     ring = turn if d.sum() >= 0 else n_turns - 1 - turn
@@ -208,16 +268,11 @@ class BeamModel:
 
     def ring_of(self, xyz: np.ndarray) -> np.ndarray:
         """(N,) int16 beam index of each point (0 = lowest). Stored beam by beam with this
-        model's beam count: the order's azimuth turns; otherwise the nearest beam elevation."""
-        xyz = np.asarray(xyz, dtype=np.float64)
-        if xyz.ndim != 2 or xyz.shape[1] != 3:
-            raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
-        if self.layout:
-            ring = layout_rings(xyz, self.seam_rad)
-            if ring is not None and int(ring.max()) + 1 == self.n_beams:
-                return ring
-        mid = 0.5 * (self.elevations_deg[1:] + self.elevations_deg[:-1])
-        return np.searchsorted(mid, elevation_deg(xyz)).astype(np.int16)
+        model's beam count: the order's azimuth turns; otherwise the nearest beam elevation.
+        Points without an azimuth (at the origin, range <= 1 mm, or not finite: drivers
+        write (0, 0, 0) for a missing return) do not count for the layout; they get the
+        nearest beam elevation."""
+        return self.fill(xyz, 0.0, time=False)[0]
 
     def time_of(self, xyz: np.ndarray, period_s: float) -> np.ndarray | None:
         """(N,) per-point time (s from the sweep start, in [0, period_s)) of a beam-by-beam
@@ -227,16 +282,52 @@ class BeamModel:
         seam (true for organised Ouster clouds and the simulator's KITTI-style HDL-64E):
         t = (azimuth advanced from the seam) / (2 pi) * period_s.
         """
-        if not self.layout or self.seam_rad is None or period_s <= 0:
-            return None
+        return self.fill(xyz, period_s, ring=False)[1]
+
+    def fill(
+        self, xyz: np.ndarray, period_s: float, *, ring: bool = True, time: bool = True
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(ring, time): ``ring_of(xyz)`` and ``time_of(xyz, period_s)`` in one pass, the
+        azimuth, elevation and stored-order test computed once (what a driver without ring
+        and time fields costs per scan). ring / time False: that one is not computed (None).
+        """
         xyz = np.asarray(xyz, dtype=np.float64)
-        fa = _forward_azimuth(xyz)
-        if fa is None:
-            return None
-        _, sign, _ = fa
-        az = np.arctan2(xyz[:, 1], xyz[:, 0])
-        phase = (sign * (az - self.seam_rad)) % (2 * np.pi)
-        return phase / (2 * np.pi) * period_s
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
+        want_time = time and self.layout and self.seam_rad is not None and period_s > 0
+        if not (ring or want_time):
+            return None, None
+        elev = elevation_deg(xyz) if ring else None
+        ring_out = time_out = None
+        if self.layout and len(xyz):
+            az = np.arctan2(xyz[:, 1], xyz[:, 0])
+            valid = np.einsum("ij,ij->i", xyz, xyz) > 1e-6  # False for NaN too
+            every = bool(valid.all())
+            az_v = az if every else az[valid]
+            fa = _forward_from_azimuth(az_v)
+            if ring and fa is not None:
+                elev_v = elev if every else elev[valid]
+                seam = self.seam_rad
+                if seam is None:
+                    seam = layout_seam(xyz if every else xyz[valid])
+                r = None if seam is None else _layout_rings_polar(az_v, elev_v, seam, fa)
+                if r is not None and int(r.max()) + 1 == self.n_beams:
+                    if every:
+                        ring_out = r
+                    else:
+                        ring_out = self._nearest_beam(elev)
+                        ring_out[valid] = r
+            if want_time and fa is not None:
+                phase = (fa[1] * (az - self.seam_rad)) % (2 * np.pi)
+                time_out = phase / (2 * np.pi) * period_s
+        if ring and ring_out is None:
+            ring_out = self._nearest_beam(elev)
+        return ring_out, time_out
+
+    def _nearest_beam(self, elev: np.ndarray) -> np.ndarray:
+        """(N,) int16 ring of the nearest beam elevation to each elevation (deg)."""
+        mid = 0.5 * (self.elevations_deg[1:] + self.elevations_deg[:-1])
+        return np.searchsorted(mid, elev).astype(np.int16)
 
     def describe(self) -> str:
         """One line for the log, e.g. 'inferred 64 beams, +2.8..-23.6 deg, ...'."""
@@ -313,3 +404,141 @@ def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
             return BeamModel(np.sort(med), True, seam, max_range=max_range, source="point layout")
     elev = np.concatenate([elevation_deg(s) for s in scans])
     return BeamModel(_histogram_beams(elev), layout=False, max_range=max_range)
+
+
+# ---------------------------------------------------------------- compiled kernels
+# Each equals the numpy code it replaces (``_forward_azimuth``, ``layout_rings_reference``,
+# ``_group_medians``): same float operations in the same order, tested in tests/test_sensor.py.
+
+
+@njit(cache=True)
+def _forward_kernel(az: np.ndarray, max_back: float) -> tuple[np.ndarray, float, bool]:
+    """(u, sign, ok) of ``_forward_azimuth`` from the (N >= 2,) azimuths (rad); ok False
+    where the reference gives None for back steps (more than 5 % step back > 1e-3 rad)."""
+    n = az.size
+    m = n - 1
+    two_pi = 2.0 * np.pi
+    step = np.empty(m)
+    n_neg = 0
+    big_neg = -np.inf  # the largest negative step
+    small_pos = np.inf  # the smallest non-negative step
+    for i in range(m):
+        s = (az[i + 1] - az[i] + np.pi) % two_pi - np.pi
+        step[i] = s
+        if s < 0.0:
+            n_neg += 1
+            big_neg = max(big_neg, s)
+        else:
+            small_pos = min(small_pos, s)
+    # the sign of np.median(step) from the count of negative steps (the two middle values
+    # of an even count are the largest negative and the smallest non-negative step)
+    h = m // 2
+    if m % 2 == 1:
+        forward = n_neg <= h
+    elif n_neg != h:
+        forward = n_neg < h
+    else:
+        forward = (big_neg + small_pos) / 2.0 >= 0.0
+    sign = 1.0 if forward else -1.0
+    u = np.empty(n)
+    u[0] = 0.0
+    n_back = 0
+    acc = 0.0
+    for i in range(m):
+        s = step[i] * sign
+        if s < -1e-3:
+            n_back += 1
+        if s < -max_back:
+            s += two_pi
+        acc += s
+        u[i + 1] = acc
+    return u, sign, n_back / m <= 0.05
+
+
+@njit(cache=True)
+def _group_medians_kernel(
+    values: np.ndarray, group: np.ndarray, mask: np.ndarray, n: int
+) -> np.ndarray:
+    """(n,) upper median of values[mask] per group id 0..n-1 (NaN for an empty group):
+    ``_group_medians`` by a counting sort into groups, then one selection per group."""
+    counts = np.zeros(n, np.int64)
+    for i in range(values.size):
+        if mask[i]:
+            counts[group[i]] += 1
+    start = np.zeros(n + 1, np.int64)
+    for g in range(n):
+        start[g + 1] = start[g] + counts[g]
+    buf = np.empty(start[n])
+    fill = start[:n].copy()
+    for i in range(values.size):
+        if mask[i]:
+            g = group[i]
+            buf[fill[g]] = values[i]
+            fill[g] += 1
+    med = np.full(n, np.nan)
+    for g in range(n):
+        if counts[g] > 0:
+            seg = np.partition(buf[start[g] : start[g + 1]], counts[g] // 2)
+            med[g] = seg[counts[g] // 2]
+    return med
+
+
+@njit(cache=True)
+def _layout_kernel(
+    u: np.ndarray, elev: np.ndarray, shift: float, window: float, lo_turns: int, hi_turns: int
+) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+    """The per-point work of ``layout_rings_reference``: (turn, n_first, n_turns, counts,
+    med). turn: (N,) compacted turn id 0..n_turns-1 of each point after the seam-window
+    reassignment; n_first: the turn count before it (outside [lo_turns, hi_turns] the rest
+    is not computed); counts, med: points and median elevation (deg) per turn."""
+    n = u.size
+    two_pi = 2.0 * np.pi
+    turn = np.empty(n, np.int64)
+    phase = np.empty(n)
+    t_min = np.iinfo(np.int64).max
+    t_max = np.iinfo(np.int64).min
+    for i in range(n):
+        v = u[i] - shift
+        f = np.floor(v / two_pi)
+        t = np.int64(f)
+        turn[i] = t
+        phase[i] = v - two_pi * f
+        t_min = min(t_min, t)
+        t_max = max(t_max, t)
+    n_first = t_max - t_min + 1
+    empty = np.empty(0, np.int64)
+    if n_first < lo_turns or n_first > hi_turns:
+        return turn, n_first, 0, empty, np.empty(0)
+    clear = np.empty(n, np.bool_)
+    top = two_pi - window
+    for i in range(n):
+        turn[i] -= t_min
+        clear[i] = not (phase[i] < window or phase[i] > top)
+    med = _group_medians_kernel(elev, turn, clear, n_first)
+    # points near the seam join the adjacent turn whose median elevation is nearer
+    out = turn.copy()
+    for i in range(n):
+        if clear[i]:
+            continue
+        other = turn[i] - 1 if phase[i] < window else turn[i] + 1
+        if other < 0 or other >= n_first:
+            continue
+        d_own = abs(elev[i] - med[turn[i]])
+        d_other = abs(elev[i] - med[other])
+        if d_other < d_own or (np.isnan(d_own) and not np.isnan(d_other)):
+            out[i] = other
+    # compact the turn ids (np.unique's inverse)
+    present = np.zeros(n_first, np.int64)
+    for i in range(n):
+        present[out[i]] = 1
+    new_id = np.empty(n_first, np.int64)
+    k = 0
+    for g in range(n_first):
+        new_id[g] = k
+        k += present[g]
+    counts = np.zeros(k, np.int64)
+    for i in range(n):
+        out[i] = new_id[out[i]]
+        counts[out[i]] += 1
+    med_all = _group_medians_kernel(elev, out, np.ones(n, np.bool_), k)
+    return out, n_first, k, counts, med_all

@@ -151,3 +151,119 @@ def test_time_of_a_layout_cloud() -> None:
     t = model.time_of(xyz, 0.1)
     assert np.abs(t - t_true).max() < 1e-9 + 0.1 / columns
     assert estimate_beams([spin(elev, 900, "firing")[0]]).time_of(xyz, 0.1) is None
+
+
+# ---------------------------------------------------------------- compiled kernels
+
+
+def _layout_clouds() -> list[np.ndarray]:
+    """Clouds of every layout the kernels meet: beam by beam (bottom up, top down, with
+    sky gaps), firing order and shuffled (not layouts), 16-128 beams."""
+    clouds = []
+    for elev in SENSORS.values():
+        for order in ("ring", "firing", "shuffled"):
+            clouds.append(spin(elev, 600, order, seed=len(elev))[0])
+    xyz, ring = spin(SENSORS["OS-128"], 512, "ring")
+    clouds.append(xyz[np.argsort(-ring, kind="stable")])
+    xyz, ring = spin(SENSORS["HDL-64E"], 900, "ring", seed=2)
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) % 360
+    clouds.append(xyz[~((ring >= 48) & (az > 60) & (az < 270))])
+    return clouds
+
+
+def test_forward_kernel_equals_numpy_reference() -> None:
+    from slam.sensor import _forward_azimuth, _forward_from_azimuth
+
+    n_layouts = 0
+    for xyz in _layout_clouds():
+        ref = _forward_azimuth(xyz)
+        got = _forward_from_azimuth(np.arctan2(xyz[:, 1], xyz[:, 0]))
+        assert (ref is None) == (got is None)
+        if ref is not None:
+            n_layouts += 1
+            assert np.array_equal(ref[0], got[0]) and ref[1] == got[1]
+    assert n_layouts >= 6  # beam-by-beam clouds of every sensor
+
+
+def test_group_medians_kernel_equals_numpy_reference() -> None:
+    from slam.sensor import _group_medians, _group_medians_kernel
+
+    rng = np.random.default_rng(4)
+    for n, groups in ((1, 1), (10, 3), (5001, 64), (20000, 130)):
+        values = np.round(rng.normal(0.0, 5.0, n), 2)  # ties included
+        group = rng.integers(0, groups, n)
+        group[: min(n, groups)] = np.arange(min(n, groups))  # no group empty but the last
+        ref = _group_medians(values, group, groups + 1)
+        got = _group_medians_kernel(values, group, np.ones(n, np.bool_), groups + 1)
+        assert np.array_equal(ref, got, equal_nan=True) and np.isnan(got[-1])
+
+
+def test_layout_rings_kernel_equals_numpy_reference() -> None:
+    from slam.sensor import layout_rings_reference
+
+    n_layouts = 0
+    for xyz in _layout_clouds():
+        ref, got = layout_rings_reference(xyz), layout_rings(xyz)
+        assert (ref is None) == (got is None)
+        if ref is not None:
+            n_layouts += 1
+            assert got.dtype == np.int16 and np.array_equal(ref, got)
+    assert n_layouts >= 6
+
+
+def test_fill_equals_ring_of_and_time_of() -> None:
+    for order in ("ring", "firing"):
+        xyz, ring = spin(SENSORS["HDL-64E"], 900, order, seed=1)
+        model = estimate_beams([xyz])
+        r, t = model.fill(xyz, 0.1)
+        assert np.array_equal(r, ring) and np.array_equal(r, model.ring_of(xyz))
+        t_ref = model.time_of(xyz, 0.1)
+        assert (t is None) == (t_ref is None) == (order == "firing")
+        if t is not None:
+            assert np.array_equal(t, t_ref) and 0.0 <= t.min() and t.max() <= 0.1
+        assert model.fill(xyz, 0.1, ring=False, time=False) == (None, None)
+
+
+def test_points_at_the_origin_keep_the_layout() -> None:
+    """Drivers write (0, 0, 0) for a missing return (real KITTI scans hold one): such a point
+    has no azimuth, and one of them used to break the layout and send every ring to the
+    nearest-elevation table (overlapping HDL-64E beams then mix)."""
+    xyz, ring = spin(SENSORS["HDL-64E"], 900, "ring", seed=3)
+    model = estimate_beams([xyz])
+    holes = xyz.copy()
+    holes[[10, 30000, 40000]] = 0.0
+    holes[20000] = np.nan
+    assert layout_rings(holes, model.seam_rad) is None  # the raw order is broken by them
+    r, t = model.fill(holes, 0.1)
+    ok = np.ones(len(xyz), bool)
+    ok[[10, 20000, 30000, 40000]] = False
+    assert np.array_equal(r[ok], ring[ok]) and r.dtype == np.int16
+    assert 0 <= r.min() and r.max() < 64
+    assert np.array_equal(t[ok], model.time_of(xyz, 0.1)[ok])
+
+
+def test_real_hdl64_layout_holds_on_every_scan(tmp_path) -> None:
+    """Real KITTI-raw HDL-64E scans (stored beam by beam, one (0, 0, 0) point each): every
+    scan keeps its layout rings, equal to the numpy reference on the points with an azimuth,
+    and the fused fill equals ring_of / time_of."""
+    import tarfile
+
+    from shared_data import shared_path
+
+    from slam.io.folders import read_cloud
+    from slam.sensor import layout_rings_reference
+
+    with tarfile.open(shared_path("kitti_raw_drive", "data_1.tar.xz"), "r:xz") as tar:
+        members = [m for m in tar if m.name.endswith(".pcd")][:4]
+        tar.extractall(tmp_path, members=members, filter="data")
+    scans = [read_cloud(tmp_path / m.name, index=i, stamp=0.1 * i) for i, m in enumerate(members)]
+    model = estimate_beams([s.xyz for s in scans[:3]])
+    assert model.layout and model.n_beams == 64
+    for s in scans:
+        ok = np.einsum("ij,ij->i", s.xyz, s.xyz) > 1e-6
+        ref = layout_rings_reference(s.xyz[ok], model.seam_rad)
+        ring, t = model.fill(s.xyz, 0.1)
+        assert ref is not None and np.array_equal(ring[ok], ref)
+        assert np.array_equal(ring, model.ring_of(s.xyz))
+        assert np.array_equal(t, model.time_of(s.xyz, 0.1))
+        assert np.bincount(ring, minlength=64).min() > 500
