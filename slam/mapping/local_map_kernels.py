@@ -24,8 +24,15 @@ N, NV, NC, BOX = 0, 1, 2, 3  # indices into ``state``
 
 @njit(cache=True)
 def _home(tkeys, key):
+    """Home slot of ``key``: splitmix64's finaliser, whose low bits depend on every bit of
+    the key. (Masking bits 17.. of key * golden ratio ignored x, the top 21 bits of the key:
+    the voxels of a row along x shared a home slot, and lookups on an outdoor map probed 16
+    slots on average, absent keys far more.)"""
     mask = np.uint64(len(tkeys) - 1)
-    return ((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(17)) & mask
+    h = np.uint64(key)
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return (h ^ (h >> np.uint64(31))) & mask
 
 
 @njit(cache=True)
