@@ -103,6 +103,8 @@ def run(
         "submap_bytes": storage.get("submap", 0),
         "regions": len(getattr(pipe.frontend, "regions", {})),
     }
+    counts = getattr(pipe.frontend, "counts", {})
+    row.update({k: counts[k] for k in ("revisit_searches", "reanchored") if k in counts})
     if stats_of is not None:
         st = stats_of()
         row.update(graph_ms=st["optimize_mean_ms"], optimizations=int(st["optimizations"]))

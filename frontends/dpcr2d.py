@@ -42,6 +42,7 @@ from slam.mapping.grid2d import (
 )
 
 __all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
+from slam.registration.correlative2d import CorrelativeConfig, correlative_search
 from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
 from slam.types import Odometry, Scan
 
@@ -72,6 +73,17 @@ class Dpcr2dConfig:
     max_step (m, deg): a registration moving the pose further than this from the
     prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
     grids (5 cm cells).
+
+    revisit_search: on entering a region mapped before, after ``revisit_path`` m (or
+    more) elsewhere, the submap is searched over the wide window ``revisit`` (rotations
+    and shifts, ``slam.registration.correlative2d``) on the region's map before the
+    second registration, which only converges within ~0.3 m / a few degrees: real
+    revisits come back 15 deg / metres off. The match is taken when it is unique (second
+    peak / best <= ``revisit_max_uniqueness``) and, after PLICP, ``revisit_min_inliers``
+    of the submap's obstacle cells lie within ``revisit_match_distance`` of the map; the
+    robot and the submap then move onto the region's map (re-anchored), so that the scans
+    that follow draw its walls where they already are. A correction within
+    ``revisit_min_m`` and ``revisit_min_deg`` is left to the second registration.
     """
 
     submap_scans: int = 20
@@ -92,6 +104,14 @@ class Dpcr2dConfig:
     lines: LineConfig = field(default_factory=LineConfig)
     plicp: PlicpConfig = field(default_factory=PlicpConfig)
     regional_plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
+    revisit_search: bool = True
+    revisit_path: float = 10.0
+    revisit: CorrelativeConfig = field(default_factory=CorrelativeConfig)
+    revisit_max_uniqueness: float = 0.8
+    revisit_min_inliers: float = 0.5
+    revisit_match_distance: float = 0.1
+    revisit_min_m: float = 0.15
+    revisit_min_deg: float = 2.0
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
@@ -105,6 +125,7 @@ class _Region:
     grid: OccupancyGrid
     ref: LineReference | None = None
     refreshed_at: int = -(10**9)
+    left_at: float = 0.0  # path length (m) when the robot was last in the region
 
 
 class Dpcr2d:
@@ -127,7 +148,9 @@ class Dpcr2d:
         self.regions: dict[int, _Region] = {}
         self.region: int | None = None
         self.pose_kf = np.zeros(3)
-        self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0}
+        self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0,
+                       "revisit_searches": 0, "reanchored": 0}  # fmt: skip
+        self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
@@ -219,12 +242,52 @@ class Dpcr2d:
         if not self._plausible(res, np.zeros(3)):
             self.counts["second_rejected"] += 1
             return
-        delta = res.pose  # world-frame correction of the submap
+        self._move(res.pose)  # world-frame correction of the submap
+        timings["second_ms"] = (time.perf_counter() - t) * 1e3
+
+    def _move(self, delta: np.ndarray) -> None:
+        """Move the robot and the submap by the world-frame correction ``delta``."""
         self.pose = compose2d(delta, self.pose)
         self.window = deque((pts, compose2d(delta, pose)) for pts, pose in self.window)
         self._rebuild_submap()
         self._refresh_submap_lines()
-        timings["second_ms"] = (time.perf_counter() - t) * 1e3
+
+    def _reanchor(self, region: _Region, extras: dict) -> bool:
+        """Wide search of the submap on the map of a region entered again (see
+        ``revisit_search``); True when the robot and the submap moved onto it."""
+        cfg = self.cfg
+        target = self.submap.obstacle_points()
+        reference = region.grid.obstacle_points()
+        ref = self._region_ref(region)
+        if ref is None or len(target) < cfg.min_points or len(reference) < cfg.min_points:
+            return False
+        self.counts["revisit_searches"] += 1
+        found = correlative_search(reference, target, np.zeros(3), cfg.revisit)
+        extras.update(revisit_score=found.score, revisit_uniqueness=found.uniqueness)
+        if found.uniqueness > cfg.revisit_max_uniqueness:
+            return False
+        res = plicp(target, ref, found.pose, cfg.regional_plicp)
+        dist, _ = ref.tree.query(transform2d(res.pose, target))
+        inliers = float(np.mean(dist < cfg.revisit_match_distance))
+        refine = compose2d(inverse2d(found.pose), res.pose)
+        extras.update(revisit_inliers=inliers)
+        if (
+            inliers < cfg.revisit_min_inliers
+            or res.matches < cfg.regional_plicp.min_matches
+            or np.linalg.norm(refine[:2]) > 2 * cfg.revisit.resolution
+            or abs(np.degrees(refine[2])) > 2 * cfg.revisit.angle_step_deg
+        ):
+            return False
+        if (
+            np.linalg.norm(res.pose[:2]) < cfg.revisit_min_m
+            and abs(np.degrees(res.pose[2])) < cfg.revisit_min_deg
+        ):
+            return False  # within the second registration's basin: it runs as usual
+        self.counts["reanchored"] += 1
+        extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res.pose[:2])),
+                      reanchor_deg=float(np.degrees(res.pose[2])))  # fmt: skip
+        self._move(res.pose)
+        return True
 
     def _fuse_region(self, pts: np.ndarray, pose: np.ndarray) -> None:
         region = self.regions.get(self.region)
@@ -286,15 +349,32 @@ class Dpcr2d:
         timings["submap_ms"] = (time.perf_counter() - t) * 1e3
 
         # regions: which one the robot is in; entering another one is a keyframe
+        self.path += float(np.linalg.norm(self.pose[:2] - previous[:2]))
         region = int(self.division.region_of(self.pose[:2][None])[0])
         entered = region != self.region
         left = self.region
-        self.region = region
+        if left is not None and left in self.regions and entered:
+            self.regions[left].left_at = self.path
         t = time.perf_counter()
+        known = self.regions.get(region)
+        reanchored = False
+        if (
+            entered
+            and known is not None
+            and cfg.revisit_search
+            and cfg.second_registration
+            and self.path - known.left_at >= cfg.revisit_path
+        ):
+            reanchored = self._reanchor(known, extras)
+            timings["revisit_ms"] = (time.perf_counter() - t) * 1e3
+            if reanchored:  # the region the corrected pose is in
+                region = int(self.division.region_of(self.pose[:2][None])[0])
+                entered = region != left
+        self.region = region
         if len(pts) >= cfg.min_points:
             self._fuse_region(pts, self.pose)
         due = self.frame % cfg.second_every == 0 or (entered and region in self.regions)
-        if cfg.second_registration and due:
+        if cfg.second_registration and due and not reanchored:
             self._second_registration(timings)
         timings["region_ms"] = (time.perf_counter() - t) * 1e3
 

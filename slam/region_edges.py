@@ -12,14 +12,18 @@ estimate), and adds an edge when their MatchRate, eq. (11):
 
 passes ``min_match_rate`` and the correction agrees with the odometry within a gate that
 grows with the distance travelled (the same physics as the 3D loop gate: drift is a few
-per cent of the path). Edges are BetweenFactorPose3 (planar) with a robust kernel, so any
-back end takes them; the ``region_graph`` back end projects them on the plane.
+per cent of the path). When that registration does not match (a revisit 15 deg / metres
+off the estimate, beyond PLICP's basin), a wide correlative search around the estimate
+(``slam.registration.correlative2d``) gives PLICP a start; such an edge must be unique
+(no second peak close to the best: not a corridor) and passes the wider gate
+``wide_gate_m`` / ``wide_gate_deg``. Edges are BetweenFactorPose3 (planar) with a robust
+kernel, so any back end takes them; the ``region_graph`` back end projects them on the plane.
 """
 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import gtsam
@@ -36,7 +40,8 @@ from slam.mapping.grid2d import (
     pose2_to_matrix,
     transform2d,
 )
-from slam.registration.plicp import LineReference, PlicpConfig, plicp
+from slam.registration.correlative2d import CorrelativeConfig, correlative_search
+from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
 from slam.types import Keyframe
 
 CSV_COLUMNS = ("source", "target", "region_source", "region_target", "match_rate", "rmse",
@@ -50,7 +55,13 @@ class RegionEdgeConfig(FactorConfig):
     closer than this after registration is a match; skip_recent: the last keyframes not
     linked (the odometry chain already is); gate_m + gate_fraction * path (m since the
     other keyframe): largest correction of the odometry an edge may make; gate_deg;
-    resolution (m): the grid cells of the clouds (line extraction)."""
+    resolution (m): the grid cells of the clouds (line extraction); wide_search: a
+    candidate PLICP does not match from the estimate, or matches with a correction beyond
+    the gate, is searched over the window ``wide``
+    (at most ``wide_per_keyframe`` candidates per keyframe, nearest centres first),
+    accepted when its second peak / best <= ``wide_max_uniqueness`` and its correction
+    of the odometry is within ``wide_gate_m`` + gate_fraction * path and
+    ``wide_gate_deg``."""
 
     region_width: float = 4.0
     alpha: float = 1.5
@@ -63,6 +74,12 @@ class RegionEdgeConfig(FactorConfig):
     resolution: float = 0.05
     robust: str = "cauchy"
     robust_param: float = 1.0
+    wide_search: bool = True
+    wide: CorrelativeConfig = field(default_factory=CorrelativeConfig)
+    wide_per_keyframe: int = 2
+    wide_max_uniqueness: float = 0.8
+    wide_gate_m: float = 3.0
+    wide_gate_deg: float = 25.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -82,6 +99,7 @@ class RegionEdge:
     rmse: float
     accepted: bool
     reason: str
+    wide: bool = False
 
 
 class RegionEdgePlugin:
@@ -134,14 +152,15 @@ class RegionEdgePlugin:
         T_k = graph.estimate(kf.id)
         factors = []
         target = np.asarray(cloud, dtype=np.float64)[:, :2]
+        candidates = []
         for j, region_j in self._regions.items():
             if j >= kf.id - cfg.skip_recent:
                 continue
-            if (
-                np.linalg.norm(self.division.centre(region_j) - centre)
-                > cfg.region_width * cfg.alpha
-            ):
-                continue
+            dist = float(np.linalg.norm(self.division.centre(region_j) - centre))
+            if dist <= cfg.region_width * cfg.alpha:
+                candidates.append((dist, j, region_j))
+        wide_left = cfg.wide_per_keyframe if cfg.wide_search else 0
+        for _, j, region_j in sorted(candidates):
             ref = self._reference(graph, j)
             if ref is None:
                 continue
@@ -150,19 +169,23 @@ class RegionEdgePlugin:
             res = plicp(target, ref, guess, self.plicp)
             rate = self.match_rate(ref, target, res.pose)
             T_jk_odom = matrix_to_pose2(np.linalg.solve(graph.keyframes[j].pose_odom, kf.pose_odom))
-            corr = compose2d(inverse2d(T_jk_odom), res.pose)
             path = self._path[kf.id] - self._path[j]
-            reason = ""
-            if rate < cfg.min_match_rate:
-                reason = f"match rate {rate:.2f} < {cfg.min_match_rate}"
-            elif np.linalg.norm(corr[:2]) > cfg.gate_m + cfg.gate_fraction * path:
-                reason = f"correction {np.linalg.norm(corr[:2]):.2f} m beyond the drift gate"
-            elif abs(np.degrees(corr[2])) > cfg.gate_deg:
-                reason = f"correction {np.degrees(corr[2]):.1f} deg beyond the gate"
+            reason = self._reject(rate, compose2d(inverse2d(T_jk_odom), res.pose), path, False)
+            wide = False
+            if reason and wide_left > 0:  # no match, or a correction only a unique one may make
+                wide_left -= 1
+                found = self._wide(ref, target, guess)
+                if found is not None:
+                    wide_rate = self.match_rate(ref, target, found.pose)
+                    corr = compose2d(inverse2d(T_jk_odom), found.pose)
+                    wide_reason = self._reject(wide_rate, corr, path, True)
+                    if not wide_reason or wide_rate > rate:
+                        res, rate, wide, reason = found, wide_rate, True, wide_reason
             accepted = not reason
             self.events.append(
-                RegionEdge(kf.id, j, region, region_j, rate, res.rmse, accepted, reason or "ok")
-            )
+                RegionEdge(kf.id, j, region, region_j, rate, res.rmse, accepted,
+                           reason or ("ok (wide search)" if wide else "ok"), wide)
+            )  # fmt: skip
             if not accepted:
                 continue
             info = np.zeros((6, 6))
@@ -181,10 +204,36 @@ class RegionEdgePlugin:
             )
         return factors
 
+    def _reject(self, rate: float, corr: np.ndarray, path: float, wide: bool) -> str:
+        """Why an edge of this match rate and correction of the odometry (x, y, theta),
+        ``path`` m after the other keyframe, is rejected ("" = accepted)."""
+        cfg = self.config
+        gate_m = (cfg.wide_gate_m if wide else cfg.gate_m) + cfg.gate_fraction * path
+        gate_deg = cfg.wide_gate_deg if wide else cfg.gate_deg
+        if rate < cfg.min_match_rate:
+            return f"match rate {rate:.2f} < {cfg.min_match_rate}"
+        if np.linalg.norm(corr[:2]) > gate_m:
+            return f"correction {np.linalg.norm(corr[:2]):.2f} m beyond the drift gate"
+        if abs(np.degrees(corr[2])) > gate_deg:
+            return f"correction {np.degrees(corr[2]):.1f} deg beyond the gate"
+        return ""
+
+    def _wide(
+        self, ref: LineReference, target: np.ndarray, guess: np.ndarray
+    ) -> PlicpResult | None:
+        """The wide-basin registration of ``target`` on ``ref`` around ``guess``: the
+        correlative search, then PLICP from its best; None when the search is ambiguous
+        (second peak / best above ``wide_max_uniqueness``: a corridor, a symmetric room)."""
+        found = correlative_search(ref.points, target, guess, self.config.wide)
+        if found.uniqueness > self.config.wide_max_uniqueness:
+            return None
+        return plicp(target, ref, found.pose, self.plicp)
+
     def stats(self) -> dict[str, float]:
         return {
             "region_candidates": float(len(self.events)),
             "region_edges": float(sum(e.accepted for e in self.events)),
+            "region_edges_wide": float(sum(e.accepted and e.wide for e in self.events)),
         }
 
     def write_csv(self, path: str | Path) -> None:
