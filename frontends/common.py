@@ -40,6 +40,7 @@ from slam.registration.plausibility import (
     implausibility,
     relaxed,
 )
+from slam.rigid import kept_rigid
 from slam.types import Odometry, Scan
 
 log = logging.getLogger(__name__)
@@ -284,7 +285,8 @@ class ScanToMapFrontend:
         extras["tracking_lost"] = int(lost is not None)
         extras["map_points"] = self._map_size()
 
-        pose = est.pose if est is not None else T_pred
+        # chained poses drift off SO(3) by rounding, and the motion model feeds it back
+        pose = kept_rigid(est.pose if est is not None else T_pred)
         first = self.n_keyframes == 0
         if first and est is None:
             # nothing usable yet: stay at the origin, no keyframe

@@ -20,6 +20,7 @@ import gtsam
 import numpy as np
 
 from slam.errors import ConfigError
+from slam.rigid import kept_rigid
 from slam.types import Keyframe
 
 ROBUST_KERNELS = ("none", "huber", "cauchy", "tukey", "gemanmcclure")
@@ -99,5 +100,7 @@ def information_noise(info: np.ndarray) -> gtsam.noiseModel.Base:
 
 
 def pose3(T: np.ndarray) -> gtsam.Pose3:
-    """gtsam.Pose3 from a 4x4 matrix (re-orthonormalised rotation)."""
-    return gtsam.Pose3(np.asarray(T, dtype=float))
+    """gtsam.Pose3 from a 4x4 matrix, its rotation re-orthonormalised when it is off SO(3)
+    by more than rounding (gtsam.Pose3 takes the matrix as it is: a scaled "rotation"
+    made iSAM2 fail with an indeterminate system)."""
+    return gtsam.Pose3(kept_rigid(np.asarray(T, dtype=float)))
