@@ -220,3 +220,21 @@ def test_hash_spreads_rows_of_voxels_over_the_table():
         homes = {int(_home(tkeys, key)) for key in keys}
         # random placement: E[distinct] = m (1 - exp(-n / m)) ~ 0.88 n at n / m = 1/4
         assert len(homes) > 0.8 * len(keys), (axes, len(homes))
+
+
+def test_shell_offsets_cover_each_shell_once_nearest_first():
+    from slam.mapping.local_map_kernels import shell_offsets
+
+    offsets, start = shell_offsets(3)
+    assert start.tolist() == [0, 1, 27, 125, 343]
+    for s in range(4):
+        shell = offsets[start[s] : start[s + 1]]
+        assert np.all(np.abs(shell).max(axis=1) == s)
+        assert (
+            len({tuple(o) for o in shell})
+            == len(shell)
+            == (2 * s + 1) ** 3 - max(2 * s - 1, 0) ** 3
+        )
+    # shell 1: the six faces come before the edges and corners that lie on their far sides
+    one = offsets[start[1] : start[2]].tolist()
+    assert one.index([1, 0, 0]) < one.index([-1, -1, 0]) and one[0] == [0, 0, 1]

@@ -38,6 +38,7 @@ _EMPTY = np.int64(-1)
 MAX_SHELLS = 2  # voxel shells scanned before a query goes on over coarse cells (or as many
 # as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
 MAX_BOUNDED_SHELLS = 4
+_SHELLS = K.shell_offsets(max(MAX_SHELLS, MAX_BOUNDED_SHELLS))  # voxel visiting order
 COARSE = 8  # voxels per side of a coarse cell (4 m with the default 0.5 m voxels)
 
 
@@ -305,6 +306,7 @@ class VoxelHashMap:
             max_d2,
             voxel,
             shells,
+            *_SHELLS,
             self._tkeys,
             self._tvals,
             self._vcount,

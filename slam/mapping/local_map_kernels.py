@@ -520,11 +520,46 @@ def _coarse_search(
             return
 
 
+def shell_offsets(max_shells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel offsets (u, v, w) of the shells 0..max_shells (Chebyshev distance s) and the
+    start of each shell in them (max_shells + 2 entries). Positive components point to the
+    side of each axis nearer to the query; within a shell the offsets come in the order of
+    their gap to a typical query (a quarter voxel from its near faces), so that the k best
+    fill with near points first and more of the farther voxels are pruned unopened."""
+    rows, start = [], [0]
+    for s in range(max_shells + 1):
+        r = np.arange(-s, s + 1)
+        g = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+        g = g[np.abs(g).max(axis=1) == s]
+        gap = np.where(g > 0, g - 0.75, np.where(g < 0, -g - 0.25, 0.0))
+        g = g[np.lexsort((g[:, 2], g[:, 1], g[:, 0], (gap**2).sum(axis=1)))]
+        rows.append(g)
+        start.append(start[-1] + len(g))
+    return np.concatenate(rows).astype(np.int64), np.array(start, dtype=np.int64)
+
+
 @njit(cache=True)
 def _query_one(
-    i, q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi
+    i,
+    q,
+    k,
+    max_d2,
+    voxel,
+    max_shells,
+    offsets,
+    shell_start,
+    tkeys,
+    tvals,
+    vcount,
+    vslots,
+    vpts,
+    state,
+    od,
+    oi,
 ):
-    """Query i (see ``query``) over the voxel shells into od[i], oi[i]; False if unsettled."""
+    """Query i (see ``query``) over the voxel shells into od[i], oi[i]; False if unsettled.
+    Voxels are opened in the order of ``offsets`` (``shell_offsets``), mirrored per axis
+    towards the query's nearer face."""
     n = state[N]
     lim = 2 * OFF
     last = k - 1
@@ -543,38 +578,30 @@ def _query_one(
     fy0, fy1 = qy - cy * voxel, (cy + 1) * voxel - qy
     fz0, fz1 = qz - cz * voxel, (cz + 1) * voxel - qz
     face = min(fx0, fx1, fy0, fy1, fz0, fz1)
+    sx = 1 if fx1 < fx0 else -1  # +1: the high face is the nearer one
+    sy = 1 if fy1 < fy0 else -1
+    sz = 1 if fz1 < fz0 else -1
     cxo, cyo, czo = cx + OFF, cy + OFF, cz + OFF
     for s in range(max_shells + 1):
-        for dx in range(-s, s + 1):
+        for o in range(shell_start[s], shell_start[s + 1]):
+            dx = offsets[o, 0] * sx
+            dy = offsets[o, 1] * sy
+            dz = offsets[o, 2] * sz
             x = cxo + dx
-            if x < 0 or x >= lim:
+            y = cyo + dy
+            z = czo + dz
+            if x < 0 or x >= lim or y < 0 or y >= lim or z < 0 or z >= lim:
                 continue
             gx = _gap((cx + dx) * voxel, qx, voxel)
-            gx2 = gx * gx
-            if gx2 > max_d2 or gx2 >= bd[last]:
+            gy = _gap((cy + dy) * voxel, qy, voxel)
+            gz = _gap((cz + dz) * voxel, qz, voxel)
+            g2 = gx * gx + gy * gy + gz * gz
+            if g2 > max_d2 or g2 >= bd[last]:
                 continue
-            for dy in range(-s, s + 1):
-                y = cyo + dy
-                if y < 0 or y >= lim:
-                    continue
-                gy = _gap((cy + dy) * voxel, qy, voxel)
-                gxy2 = gx2 + gy * gy
-                if gxy2 > max_d2 or gxy2 >= bd[last]:
-                    continue
-                edge = abs(dx) == s or abs(dy) == s
-                step = 1 if edge else max(2 * s, 1)
-                for dz in range(-s, s + 1, step):
-                    z = czo + dz
-                    if z < 0 or z >= lim:
-                        continue
-                    gz = _gap((cz + dz) * voxel, qz, voxel)
-                    g2 = gxy2 + gz * gz
-                    if g2 > max_d2 or g2 >= bd[last]:
-                        continue
-                    h = slot(tkeys, (x << 42) | (y << 21) | z)
-                    if tkeys[h] == -1:
-                        continue
-                    _scan_voxel(tvals[h], vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi)
+            h = slot(tkeys, (x << 42) | (y << 21) | z)
+            if tkeys[h] == -1:
+                continue
+            _scan_voxel(tvals[h], vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi)
         r = face + s * voxel  # every point closer than r has been seen
         if bd[last] <= r * r or max_d2 <= r * r:
             return True
@@ -583,17 +610,48 @@ def _query_one(
 
 @njit(cache=True)
 def query(
-    q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi, unresolved
+    q,
+    k,
+    max_d2,
+    voxel,
+    max_shells,
+    offsets,
+    shell_start,
+    tkeys,
+    tvals,
+    vcount,
+    vslots,
+    vpts,
+    state,
+    od,
+    oi,
+    unresolved,
 ):
     """Exact k-NN (squared distances) of each query among the map points, over the voxel
     shells outwards from the query's voxel (a voxel whose box is farther than the current
     k-th neighbour, or the bound, is not opened). A query not settled within ``max_shells``
     shells (an isolated point: sparse far returns) is flagged in ``unresolved`` with its
-    partial answer, for ``query_coarse``. Missing neighbours: inf / n.
+    partial answer, for ``query_coarse``. Missing neighbours: inf / n. ``offsets``,
+    ``shell_start``: ``shell_offsets(>= max_shells)``.
     """
     for i in range(len(q)):
         settled = _query_one(
-            i, q, k, max_d2, voxel, max_shells, tkeys, tvals, vcount, vslots, vpts, state, od, oi
+            i,
+            q,
+            k,
+            max_d2,
+            voxel,
+            max_shells,
+            offsets,
+            shell_start,
+            tkeys,
+            tvals,
+            vcount,
+            vslots,
+            vpts,
+            state,
+            od,
+            oi,
         )
         unresolved[i] = not settled
 
