@@ -45,3 +45,36 @@ def test_lines_farther_than_span_distance_stay_isotropic():
 def test_negative_span_distance_is_a_config_error():
     with pytest.raises(ConfigError):
         GicpConfig(span_distance=-1.0)
+
+
+def test_half_then_wide_search_equals_one_wide_search(monkeypatch):
+    """The k_wide / 2 search, widened only where it cannot settle a row, gives the
+    covariances of one k_wide search to the bit (rows settled by either search occur)."""
+    import slam.registration.gicp as G
+
+    rng = np.random.default_rng(3)
+    rings = []
+    for ring, r in enumerate([6.0, 6.8, 8.0, 11.0]):  # ring gaps 0.8, 1.2, 3 m
+        n = int(rng.integers(60, 400))  # 1-6 cm apart along the ring: dense and sparse
+        a = np.sort(rng.uniform(-0.4, 0.4, n))
+        rings.append(np.c_[r * np.cos(a), r * np.sin(a), rng.normal(0, 0.01, n), np.full(n, ring)])
+    pts = np.concatenate(rings)
+    xyz, lab = pts[:, :3], pts[:, 3].astype(int)
+    ks = []
+    query = G.KnnTree.query
+
+    def counting(self, x, k=1, **kw):
+        ks.append(k)
+        return query(self, x, k=k, **kw)
+
+    monkeypatch.setattr(G.KnnTree, "query", counting)
+    new = estimate_covariances(xyz, 10, 1e-6, "raw", labels=lab, span_distance=2.0)
+    assert ks.count(20) == 1 and ks.count(40) == 1  # some rows needed the wide search
+
+    def one_search(tree, x, k_wide, own, labels, m, span_distance, threads):
+        d, j = tree.query(x, k=k_wide, distance_upper_bound=span_distance)
+        return d.reshape(len(x), k_wide), j.reshape(len(x), k_wide)
+
+    monkeypatch.setattr(G, "_wide_neighbours", one_search)
+    ref = estimate_covariances(xyz, 10, 1e-6, "raw", labels=lab, span_distance=2.0)
+    assert np.array_equal(new, ref)

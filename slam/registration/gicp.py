@@ -217,6 +217,48 @@ def _covariances_of(nb: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.einsum("nk,nki,nkj->nij", w, centred, centred) / (cnt - 1)[:, None, None]
 
 
+def _wide_neighbours(
+    tree: cKDTree | KnnTree,
+    x: np.ndarray,
+    k_wide: int,
+    own: np.ndarray,
+    labels: np.ndarray,
+    m: int,
+    span_distance: float,
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(d, j) (n, k_wide) as ``tree.query(x, k_wide, span_distance)`` gives them where it
+    matters to ``_span_scan_lines``: the k_wide / 2 nearest first; only the rows whose m
+    nearest points of other lines than ``own`` are not all among them (and whose half set
+    does not exhaust ``span_distance``) are queried again with k_wide. The others' missing
+    columns are "beyond the bound" (inf, ``len(labels)``): none of them would be taken,
+    they weigh 0 in eq. (1), and the exhaustion test of the full set holds for these rows
+    as well (same covariances to the bit, about half the k-NN work on 16-beam features)."""
+    n = len(labels)
+    k_half = min(max(k_wide // 2, 1), k_wide)
+    d, j = tree.query(
+        x, k=k_half, distance_upper_bound=span_distance, workers=_workers(len(x), threads)
+    )
+    d, j = d.reshape(len(x), k_half), j.reshape(len(x), k_half)
+    if k_half == k_wide:
+        return d, j
+    found = np.isfinite(d)
+    other = found & (labels[np.where(found, j, 0)] != own[:, None])
+    settled = (other.sum(axis=1) >= m) | ~found[:, -1]
+    d = np.pad(d, ((0, 0), (0, k_wide - k_half)), constant_values=np.inf)
+    j = np.pad(j, ((0, 0), (0, k_wide - k_half)), constant_values=n)
+    redo = np.flatnonzero(~settled)
+    if len(redo):
+        dr, jr = tree.query(
+            x[redo],
+            k=k_wide,
+            distance_upper_bound=span_distance,
+            workers=_workers(len(redo), threads),
+        )
+        d[redo], j[redo] = dr.reshape(len(redo), k_wide), jr.reshape(len(redo), k_wide)
+    return d, j
+
+
 def _span_scan_lines(
     xyz: np.ndarray,
     query: np.ndarray,
@@ -240,13 +282,8 @@ def _span_scan_lines(
     k = idx.shape[1]
     m = max(k // 2, 3)
     k_wide = min(4 * k, len(xyz))
-    d, j = tree.query(
-        query[rows],
-        k=k_wide,
-        distance_upper_bound=span_distance,
-        workers=_workers(len(rows), threads),
-    )
-    d, j = d.reshape(len(rows), k_wide), j.reshape(len(rows), k_wide)
+    own = labels[idx[rows, 0]]
+    d, j = _wide_neighbours(tree, query[rows], k_wide, own, labels, m, span_distance, threads)
     found = np.isfinite(d)
     j = np.where(found, j, 0)
     other = found & (labels[j] != labels[idx[rows, :1]])
