@@ -74,7 +74,14 @@ def _stop_code(summary: dict[str, Any]) -> int:
     if not stopped:
         return EXIT_OK
     _eprint(f"run stopped early: {stopped}; everything computed so far is in {summary['out']}/")
-    return EXIT_INTERRUPTED if stopped.startswith("interrupted") else EXIT_BAD_INPUT
+    return _exit_for_stop(stopped)
+
+
+def _exit_for_stop(stopped: str) -> int:
+    """130 for Ctrl-C, 1 for a back-end failure, 2 for input that could not be read."""
+    if stopped.startswith("interrupted"):
+        return EXIT_INTERRUPTED
+    return EXIT_FAIL if stopped.startswith("back end failed") else EXIT_BAD_INPUT
 
 
 def apply_source_args(config: Any, args: argparse.Namespace) -> None:
@@ -184,7 +191,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     for name, stopped in res["stops"].items():
         if stopped:
             _eprint(f"{name}: stopped early: {stopped}")
-            return EXIT_INTERRUPTED if stopped.startswith("interrupted") else EXIT_BAD_INPUT
+            return _exit_for_stop(stopped)
     return EXIT_OK
 
 

@@ -19,3 +19,8 @@ class ConfigError(SlamError):
 
 class PluginError(ConfigError):
     """A plugin could not be found or loaded."""
+
+
+class BackendError(SlamError):
+    """The back end could not take an update (e.g. GTSAM found the system indeterminate).
+    The pipeline stops there and writes what it has; the CLI reports it."""

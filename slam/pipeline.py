@@ -19,8 +19,8 @@ import numpy as np
 
 from slam import plugins
 from slam.config import SlamConfig
-from slam.errors import InputError
-from slam.factors import GraphView, pose3
+from slam.errors import BackendError, ConfigError, InputError, SlamError
+from slam.factors import GraphView, key, pose3
 from slam.interrupts import StopRequest
 from slam.types import Keyframe, Scan, SkippedMessage
 
@@ -179,6 +179,7 @@ class Pipeline:
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
         self._frame_stages_cpu: dict[str, float] = {}  # CPU seconds of the same
+        self._backend_failed = False  # an update failed: the run stops, outputs are written
         self.view = GraphView(self.state.keyframes, self._estimate)
 
     # ------------------------------------------------------------------ graph view
@@ -334,12 +335,42 @@ class Pipeline:
                 st.loops_closed += len(new)
             factors.extend(new)
         t0, c0 = time.perf_counter(), time.process_time()
-        self.backend.update(factors, {kf_id: pose3(initial_T)}, loop_closed=loop_closed)
+        self._backend_update(factors, {kf_id: pose3(initial_T)}, loop_closed)
         dt = time.perf_counter() - t0 + t_guess
         self._timed("backend", dt, time.process_time() - c0 + c_guess)
         st.backend_seconds.append(dt)
         self._estimate_cache = {}
         self._pending = None
+
+    def _backend_update(self, factors: list[Any], initial: dict[int, Any], loop: bool) -> None:
+        """``backend.update``; a failure stops the run (``BackendError``) with what it has."""
+        try:
+            self.backend.update(factors, initial, loop_closed=loop)
+        except (InputError, ConfigError):
+            raise
+        except (SlamError, RuntimeError, ValueError) as exc:
+            self._backend_failed = True
+            raise BackendError(str(exc).strip().splitlines()[0]) from exc
+
+    def _recovered_estimate(self) -> dict[int, Any]:
+        """After a failed update the incremental solver's state cannot be trusted: the
+        factors it had taken before (``backend.graph()`` / ``values()``, when it keeps
+        them) are optimised again in batch (Levenberg-Marquardt); keyframes without an
+        estimate then keep their odometry pose (``finish``)."""
+        import gtsam
+
+        graph, values = getattr(self.backend, "graph", None), getattr(self.backend, "values", None)
+        if not (callable(graph) and callable(values)):
+            return {}
+        try:
+            v = values()
+            result = gtsam.LevenbergMarquardtOptimizer(graph(), v).optimize()
+            return {k.id: result.atPose3(key(k.id)) for k in self.state.keyframes
+                    if result.exists(key(k.id))}  # fmt: skip
+        except (RuntimeError, ValueError) as exc:
+            log.warning("batch re-optimisation after the back-end failure failed too (%s): "
+                        "the keyframes keep their odometry poses", exc)  # fmt: skip
+            return {}
 
     # ------------------------------------------------------------------ whole run
     def _skip(self, item: SkippedMessage, strict: bool) -> None:
@@ -420,6 +451,9 @@ class Pipeline:
             st.stopped_by = "interrupted (Ctrl-C)"
         except InputError as exc:
             st.stopped_by = f"bad input: {exc}"
+        except BackendError as exc:
+            log.error("back end failed at keyframe %d: %s", len(st.keyframes) - 1, exc)
+            st.stopped_by = f"back end failed: {exc}"
         finally:
             st.wall_seconds += time.perf_counter() - began
             self.finish()
@@ -447,7 +481,7 @@ class Pipeline:
             factors.extend(new)
         if factors:
             t0 = time.perf_counter()
-            self.backend.update(factors, {}, loop_closed=loop_closed)
+            self._backend_update(factors, {}, loop_closed)
             st.stage_seconds["backend"] += time.perf_counter() - t0
             self._estimate_cache = {}
 
@@ -456,7 +490,11 @@ class Pipeline:
         keyframe."""
         st = self.state
         try:
-            self._flush_factor_sources()
+            if not self._backend_failed:
+                self._flush_factor_sources()
+        except BackendError as exc:
+            log.error("back end failed on the last factors: %s", exc)
+            st.stopped_by = st.stopped_by or f"back end failed: {exc}"
         finally:
             for source in self.factor_sources:
                 close = getattr(source.plugin, "close", None)
@@ -465,7 +503,7 @@ class Pipeline:
         if not st.keyframes:
             return
         t0 = time.perf_counter()
-        est = self.backend.finalize()
+        est = self._recovered_estimate() if self._backend_failed else self.backend.finalize()
         st.stage_seconds["backend_final"] += time.perf_counter() - t0
         st.estimates = {k: v.matrix() for k, v in est.items()}
         for kf in st.keyframes:  # a keyframe the back end never saw (stopped mid-update)

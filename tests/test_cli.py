@@ -213,3 +213,12 @@ def test_compare_table_and_no_loop_reproduces_odometry(corridor_short, tmp_path,
     _, a = read_tum(out / "improved_floam" / "trajectory.tum")
     _, b = read_tum(loop_out / "trajectory.tum")
     assert np.array_equal(a, b)
+
+
+def test_stop_codes_say_why_a_run_ended_early():
+    from slam.cli import _stop_code
+
+    assert _stop_code({"stopped_by": None, "out": "o"}) == 0
+    assert _stop_code({"stopped_by": "interrupted (Ctrl-C)", "out": "o"}) == 130
+    assert _stop_code({"stopped_by": "bad input: truncated bag", "out": "o"}) == 2
+    assert _stop_code({"stopped_by": "back end failed: indeterminate", "out": "o"}) == 1

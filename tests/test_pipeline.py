@@ -288,3 +288,35 @@ def test_factors_a_plugin_holds_at_the_end_enter_the_final_estimate():
     # the held loop (0.5 m aside, 10x tighter than odometry) pulls the last keyframe over
     moved = np.linalg.solve(poses[0], last)[:3, 3] - truth_last.translation()
     assert 0.2 < moved[1] < 0.55
+
+
+class FailingIsam2:
+    """iSAM2 that throws what GTSAM throws on an ill-posed system at its ``at``-th update."""
+
+    def __new__(cls, at: int):
+        from backends.isam2 import Isam2Backend
+
+        class _Failing(Isam2Backend):
+            def update(self, factors, initial, loop_closed=False):
+                if self.n_updates == at:
+                    raise RuntimeError("Indeterminate linear system detected near x12")
+                super().update(factors, initial, loop_closed=loop_closed)
+
+        return _Failing()
+
+
+def test_a_back_end_failure_stops_the_run_and_keeps_every_frame(tmp_path):
+    """The run stops at the keyframe the back end cannot take; the factors it had taken are
+    optimised again in batch, so every frame up to the failure is written."""
+    poses = circle_odometry(n=60)
+    config = SlamConfig(factors={"prior": {}, "odometry": {}})
+    pipe = Pipeline(config, frontend=ScriptedFrontend(poses), backend=FailingIsam2(at=12))
+    st = pipe.run(scans(60))
+    assert st.stopped_by.startswith("back end failed: Indeterminate")
+    assert len(st.keyframes) == 13 and st.frames < 60
+    written = write_outputs(pipe, tmp_path, resolved_config=resolved_config(pipe.config))
+    stamps, traj = read_tum(written["trajectory.tum"])
+    assert len(stamps) == st.frames
+    # keyframes 0-11 from the batch re-optimisation, keyframe 12 from its odometry pose
+    assert np.abs(traj[:, :3, 3] - poses[: st.frames, :3, 3]).max() < 1e-6
+    assert json.loads((tmp_path / "metrics.json").read_text())["stopped_by"].startswith("back")
