@@ -37,9 +37,9 @@ import numpy as np
 from slam.errors import InputError
 from slam.preprocess.range_image_kernels import (
     box_knn,
+    finish_rows,
     range_image_into,
     ring_ranks,
-    scatter_rows,
     window_knn,
 )
 
@@ -156,7 +156,8 @@ def range_image_knn(
         certified[:] = False
         visits[:] = 0
         return RangeImageKnn(idx, dist, certified, visits)
-    # stored ring by ring (most steps of the order +-1): rows written in place, else sorted
+    # stored ring by ring (most steps of the order +-1): rows written in place (squared
+    # distances in dist until finish_rows), else in sorted order into scratch
     in_place = n < 2 or np.count_nonzero(np.abs(np.diff(order)) == 1) > n // 2
     if in_place:
         rows = idx, dist, certified, visits
@@ -179,6 +180,5 @@ def range_image_knn(
             if len(bad) <= MAX_UNCERTIFIED * n:
                 box_knn(xyz_s, order, bad, k, rows[0], rows[1], in_place)
                 done = True
-    if not in_place:
-        scatter_rows(order, *rows, idx, dist, certified, visits)
+        finish_rows(order, in_place, *rows, idx, dist, certified, visits)
     return RangeImageKnn(idx, dist, certified, visits, done)

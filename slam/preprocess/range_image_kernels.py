@@ -102,13 +102,13 @@ def ring_ranks_into(ring: np.ndarray, el: np.ndarray, rank: np.ndarray) -> int:
     return len(present)
 
 
-@njit(cache=True)
 def range_image(xyz: np.ndarray, ring: np.ndarray):
     """The scan sorted into its range image: (order, start, xyz_s, rng_s, el_s, az_s, cx_s,
     cy_s, lo, hi, spread): sorted index -> input index, ring offsets, sorted points (m),
     range (m), elevation (rad), pseudo-azimuth (``_pseudo_azimuth``), unit azimuth
     direction, per-ring elevation range (rad), mean absolute deviation of the elevations
-    from their ring's mean (rad). Rings ordered by mean elevation (``ring_ranks``)."""
+    from their ring's mean (rad). Rings ordered by mean elevation (``ring_ranks``). Plain
+    Python around ``range_image_into`` (xyz (N, 3) float64, ring (N,) int64)."""
     n = len(xyz)
     order = np.empty(n, dtype=np.int64)
     xyz_s = np.empty((n, 3))
@@ -124,20 +124,24 @@ def range_image(xyz: np.ndarray, ring: np.ndarray):
     return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def range_image_into(xyz, ring, az, el, rank, order, xyz_s, rng, el_s, az_s, cx, cy):
     """``range_image`` into caller-owned (N,) / (N, 3) buffers (reused from scan to scan:
     fresh arrays cost page faults, a third of the time of a 16-beam scan's SOR); az, el and
-    rank are scratch. Returns (start, lo, hi, spread)."""
+    rank are scratch. Returns (start, lo, hi, spread). The angles (an atan2 per point, most
+    of this kernel's time) in parallel, the sort serial."""
     n = len(xyz)
-    for i in range(n):
+    for i in prange(n):
         x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         az[i] = _pseudo_azimuth(x, y)
         el[i] = np.arctan2(z, np.sqrt(x * x + y * y))
     n_rings = ring_ranks_into(ring, el, rank)
     start = sort_rings(rank, az, n_rings, order)
-    lo = np.full(n_rings, np.inf)
-    hi = np.full(n_rings, -np.inf)
+    lo = np.empty(n_rings)  # loops, not np.full: no parallel region per array
+    hi = np.empty(n_rings)
+    for j in range(n_rings):
+        lo[j] = np.inf
+        hi[j] = -np.inf
     dev = 0.0  # sum |elevation - its ring's mean elevation|
     for j in range(n_rings):
         mean = 0.0
@@ -173,33 +177,44 @@ def _hav_lower(x: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def _h_star(kth2: float, r2: float) -> float:
-    """The haversine of the angle theta where |p| sin(theta) reaches the k-th distance:
-    points on rays with hav(angle) > h_star cannot be nearer (inf when none can be cut)."""
-    if kth2 >= r2:
-        return np.inf
-    c = kth2 / r2
-    return c / (2.0 * (1.0 + np.sqrt(1.0 - c))) + H_MARGIN  # root of 4h(1-h) = c, stable
+def _ray_bound2(h: float, r2: float) -> float:
+    """Squared lower bound (m^2) of |p - q| over the points q on rays at hav(angle) >= h
+    from p's ray, |p|^2 = r2 m^2: |p| sin(theta) (sin^2 = 4 hav (1 - hav)), |p| from 90 deg
+    on. Compared with the k-th squared distance directly: no square root or division when
+    the k-th distance changes (the earlier form inverted it to a haversine per insert)."""
+    h -= H_MARGIN
+    if h <= 0.0:
+        return 0.0
+    if h >= 0.5:
+        return r2
+    return 4.0 * h * (1.0 - h) * r2
 
 
 @njit(cache=True, inline="always")
 def _insert(bd: np.ndarray, bi: np.ndarray, d2: float, q: int) -> None:
     """Insert (d2, q) into the ascending, inf-padded top-k buffers (the caller checked
-    d2 < bd[k-1]), dropping the last."""
-    t = len(bd) - 1
-    while t > 0 and bd[t - 1] > d2:
-        bd[t] = bd[t - 1]
-        bi[t] = bi[t - 1]
-        t -= 1
-    bd[t] = d2
-    bi[t] = q
+    d2 < bd[k-1]) after the entries equal to d2, dropping the last. Branch-free (min/max
+    and integer selects over all k slots: the shifting loop's exit was mispredicted once
+    per insert)."""
+    for t in range(len(bd) - 1, 0, -1):
+        a = bd[t - 1]
+        b = bd[t]
+        shift = np.int64(a > d2)  # slot t takes slot t-1
+        put = np.int64(a <= d2) * np.int64(b > d2)  # slot t takes the new entry
+        bd[t] = max(min(b, d2), a)
+        bi[t] += shift * (bi[t - 1] - bi[t]) + put * (q - bi[t])
+    put = np.int64(bd[0] > d2)
+    bi[0] += put * (q - bi[0])
+    bd[0] = min(bd[0], d2)
 
 
 @njit(cache=True, inline="always")
 def _ce(a: float, b: float, ia: int, ib: int) -> tuple[float, float, int, int]:
-    """Compare-exchange of a sorting network (branch-free selects)."""
-    swap = b < a
-    return (b if swap else a), (a if swap else b), (ib if swap else ia), (ia if swap else ib)
+    """Compare-exchange of a sorting network, branch-free (minsd/maxsd and an integer
+    select: the conditional-expression form compiled to branches, mispredicted on half of
+    the comparators; ties keep their order, as before)."""
+    dd = (ib - ia) * np.int64(b < a)
+    return min(a, b), max(a, b), ia + dd, ib - dd
 
 
 @njit(cache=True)
@@ -313,7 +328,7 @@ def window_knn(
     k: int,
     max_visits: int,
     out_idx: np.ndarray,
-    out_dist: np.ndarray,
+    out_d2: np.ndarray,
     certified: np.ndarray,
     n_visits: np.ndarray,
     in_input_order: bool,
@@ -329,10 +344,10 @@ def window_knn(
     columns not searched); all unvisited points are >= |p| sin(theta) away, and the points
     of a block of RING_BLOCK consecutive points >= the law-of-cosines distance at that angle
     over the block's range interval, so such a block is skipped unread.
-    Writes out_idx (N, k+1) input indices, the point itself first, and out_dist (N, k)
-    distances (m) to the k others, ascending, certified (N,) and n_visits (N,) the distance
-    evaluations, in the input order if in_input_order else in sorted order (row s is the
-    input point order[s]). A point that needs
+    Writes out_idx (N, k+1) input indices, the point itself first, and out_d2 (N, k)
+    squared distances (m^2) to the k others, ascending, certified (N,) and n_visits (N,)
+    the distance evaluations, in the input order if in_input_order else in sorted order
+    (row s is the input point order[s]). A point that needs
     more than max_visits distance evaluations stops uncertified (its row is then not valid).
     """
     n_rings = len(start) - 1
@@ -353,7 +368,7 @@ def window_knn(
         sufmin[j] = min(sufmin[j + 1], lo[j])
     rmin = np.full(bstart[n_rings], np.inf)
     rmax = np.zeros(bstart[n_rings])
-    for j in range(n_rings):
+    for j in prange(n_rings):  # each ring's blocks apart
         a = start[j]
         for u in range(start[j + 1] - a):
             ib = bstart[j] + u // B
@@ -371,13 +386,14 @@ def window_knn(
             rp = rng[s]
             r2 = rp * rp
             ep = el[s]
-            cep = np.cos(ep)
+            # cos(elevation) = |(x, y)| / |p|: a root and a division instead of libm's cos
+            cep = np.sqrt(px * px + py * py) / rp if rp > 0.0 else 1.0
             azp = az[s]
             for t in range(k):
                 bd[t] = np.inf
                 bi[t] = -1
             visits = 0
-            hstar = np.inf
+            kth2 = np.inf
             up_open = True
             down_open = True
             m = 0
@@ -399,7 +415,7 @@ def window_knn(
                             down_open = False
                             continue
                         de = ep - prefmax[j + 1]
-                    if m > 0 and de > 0.0 and _hav_lower(de) > hstar:
+                    if m > 0 and de > 0.0 and _ray_bound2(_hav_lower(de), r2) > kth2:
                         # every ring beyond is at least this elevation gap away
                         if side == 0:
                             up_open = False
@@ -435,15 +451,14 @@ def window_knn(
                         if network:
                             _sort10(bd, bi)
                         visits += w - 1
-                        if bd[k - 1] < np.inf:
-                            hstar = _h_star(bd[k - 1], r2)
+                        kth2 = bd[k - 1]
                         budget = cnt - w
                         u_right = pos + half + 1
                         u_left = pos - half - 1
                         he = 0.0
                     else:
                         he = _hav_lower(max(lo[j] - ep, ep - hi[j], 0.0))
-                        if he > hstar:
+                        if _ray_bound2(he, r2) > kth2:
                             continue  # the whole ring is too far in elevation
                         c = cursor[j]
                         if c < 0:  # first point of ring j at azimuth >= azp
@@ -462,10 +477,9 @@ def window_knn(
                         budget = cnt
                         u_right = c - a
                         u_left = u_right - 1
+                    # hav(angle to q) >= he + coef (1 - dot(azimuth of p, of q))
                     coef = 0.5 * cep * clo[j]
                     ib0 = bstart[j]
-                    # stop when 1 - dot(azimuth) > (hstar - he) / coef
-                    gap = (hstar - he) / coef if coef > 0.0 else np.inf
                     for direction in range(2):
                         step = 1 if direction == 0 else -1
                         u = u_right if direction == 0 else u_left
@@ -475,9 +489,9 @@ def window_knn(
                             elif u < 0:
                                 u += cnt
                             q = a + u
-                            if hstar < np.inf:
+                            if kth2 < np.inf:
                                 one_m_dot = 1.0 - (cx[q] * cxp + cy[q] * cyp)
-                                if one_m_dot > gap:
+                                if _ray_bound2(he + coef * one_m_dot, r2) > kth2:
                                     break  # the frontier bounds everything beyond it
                                 # entering a block at its edge: skip it whole when its range
                                 # interval and angle keep it beyond the k-th distance
@@ -488,7 +502,7 @@ def window_knn(
                                     far = 1.0 - (cx[qf] * cxp + cy[qf] * cyp)
                                     hb = he + coef * min(one_m_dot, far)
                                     ib = ib0 + b0 // B
-                                    if _block_bound2(hb, r2, rp, rmin[ib], rmax[ib]) > bd[k - 1]:
+                                    if _block_bound2(hb, r2, rp, rmin[ib], rmax[ib]) > kth2:
                                         n_b = min(b1 - b0 + 1, budget)
                                         budget -= n_b
                                         u += step * n_b
@@ -502,11 +516,9 @@ def window_knn(
                             dy = xyz[q, 1] - py
                             dz = xyz[q, 2] - pz
                             d2 = dx * dx + dy * dy + dz * dz
-                            if d2 < bd[k - 1]:
+                            if d2 < kth2:
                                 _insert(bd, bi, d2, q)
-                                if bd[k - 1] < np.inf:
-                                    hstar = _h_star(bd[k - 1], r2)
-                                    gap = (hstar - he) / coef if coef > 0.0 else np.inf
+                                kth2 = bd[k - 1]
                 m += 1
             # rows in input order when the input is stored ring by ring (near-sequential
             # writes), else in sorted order (scattered writes cost a third of the kernel on
@@ -516,7 +528,7 @@ def window_knn(
             n_visits[o] = visits
             out_idx[o, 0] = order[s]
             for t in range(k):
-                out_dist[o, t] = np.sqrt(bd[t])
+                out_d2[o, t] = bd[t]  # squared: ``finish_rows`` takes the roots, in SIMD
                 out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
 
 
@@ -575,7 +587,7 @@ def box_knn(
     queries: np.ndarray,
     k: int,
     out_idx: np.ndarray,
-    out_dist: np.ndarray,
+    out_d2: np.ndarray,
     in_input_order: bool,
 ) -> None:
     """Exact k-NN of the sorted points ``queries`` (positions into the range-image order)
@@ -583,7 +595,8 @@ def box_knn(
     boxes per super box): every box nearer than the current k-th distance is read, so the
     answer is exact whatever the window search left. The rows' window answers (k real
     points, an upper bound of the k-th distance when finite) seed the pruning radius.
-    Rows, as ``window_knn`` writes them, are overwritten with the exact answer."""
+    Rows, as ``window_knn`` writes them (squared distances, m^2), are overwritten with the
+    exact answer."""
     box = chunk_boxes(xyz, BOX)
     sup = merge_boxes(box, SUPER)
     n = len(xyz)
@@ -591,9 +604,10 @@ def box_knn(
         s = queries[r]
         o = order[s] if in_input_order else s
         px, py, pz = xyz[s, 0], xyz[s, 1], xyz[s, 2]
-        seed = out_dist[o, k - 1]
-        # the seed distance was rounded through sqrt: widen it by far more than an ulp
-        cut = (seed * (1.0 + 1e-9)) ** 2 + 1e-300 if seed < np.inf else np.inf
+        # the seed: the window's k-th squared distance, an upper bound when finite; widened
+        # by far more than the rounding of the box distances
+        seed = out_d2[o, k - 1]
+        cut = seed * (1.0 + 1e-9) + 1e-300 if seed < np.inf else np.inf
         bd = np.full(k, np.inf)
         bi = np.full(k, -1, dtype=np.int64)
         dsup = np.empty(len(sup))
@@ -619,19 +633,38 @@ def box_knn(
                         cut = min(cut, bd[k - 1])
         out_idx[o, 0] = order[s]
         for t in range(k):
-            out_dist[o, t] = np.sqrt(bd[t])
+            out_d2[o, t] = bd[t]
             out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
 
 
-@njit(cache=True)
-def scatter_rows(order, idx_s, dist_s, cert_s, visits_s, idx, dist, cert, visits) -> None:
-    """Rows in range-image order (row s is input point order[s]) to the input order."""
-    k = dist_s.shape[1]
-    for s in range(len(order)):
-        o = order[s]
-        for t in range(k):
-            dist[o, t] = dist_s[s, t]
-        for t in range(k + 1):
-            idx[o, t] = idx_s[s, t]
-        cert[o] = cert_s[s]
-        visits[o] = visits_s[s]
+ROW_CHUNK = 1024  # rows per parallel task of ``finish_rows``
+
+
+@njit(cache=True, parallel=True)
+def finish_rows(order, in_place, idx_s, d2_s, cert_s, visits_s, idx, dist, cert, visits) -> None:
+    """The rows of ``window_knn`` / ``box_knn`` made final: dist (N, k) = sqrt of the
+    squared distances (m), in place when the rows are already in the input order (then
+    d2_s is dist), else gathered from the range-image order (row s is input point order[s])
+    with the roots on the way. A gather (sequential writes in parallel chunks) rather than a
+    scatter: scattered 168-byte rows from two threads cost three times as much."""
+    n, k = dist.shape
+    n_chunks = (n + ROW_CHUNK - 1) // ROW_CHUNK
+    if in_place:
+        flat = dist.reshape(n * k)
+        for c in prange(n_chunks):
+            for j in range(c * ROW_CHUNK * k, min(n, (c + 1) * ROW_CHUNK) * k):
+                flat[j] = np.sqrt(flat[j])
+        return
+    inv = np.empty(n, dtype=np.int64)
+    for c in prange(n_chunks):
+        for s in range(c * ROW_CHUNK, min(n, (c + 1) * ROW_CHUNK)):
+            inv[order[s]] = s
+    for c in prange(n_chunks):
+        for o in range(c * ROW_CHUNK, min(n, (c + 1) * ROW_CHUNK)):
+            s = inv[o]
+            for t in range(k):
+                dist[o, t] = np.sqrt(d2_s[s, t])
+            for t in range(k + 1):
+                idx[o, t] = idx_s[s, t]
+            cert[o] = cert_s[s]
+            visits[o] = visits_s[s]
