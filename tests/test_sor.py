@@ -210,7 +210,9 @@ def test_vectorised_exp_within_one_ulp_of_numpy():
 
 
 def test_simd_and_libm_kernels_same_keep_mask(scan):
-    """The vectorised-exp kernel (used) and the libm-exp kernel (the earlier one) agree."""
+    """The vectorised-exp kernel (used) and the libm-exp kernel (the earlier one) agree.
+    Their sums differ in order (chunked partial sums vs one running sum over N k values):
+    3e-14 relative in d measured."""
     from slam.preprocess.sor import knn_distances
     from slam.preprocess.sor_kernels import weighted_sor_kernel, weighted_sor_kernel_simd
 
@@ -218,6 +220,6 @@ def test_simd_and_libm_kernels_same_keep_mask(scan):
     dist = np.ascontiguousarray(knn_distances(xyz, 10))
     a = weighted_sor_kernel(dist, 1.0, 1e-5, 1.0)
     b = weighted_sor_kernel_simd(dist, 1.0, 1e-5, 1.0)
-    np.testing.assert_allclose(b[0], a[0], rtol=1e-14, atol=0)
-    assert abs(b[1] - a[1]) <= 1e-14 * a[1] and abs(b[2] - a[2]) <= 1e-13 * a[2]
+    np.testing.assert_allclose(b[0], a[0], rtol=1e-13, atol=0)
+    assert abs(b[1] - a[1]) <= 1e-13 * a[1] and abs(b[2] - a[2]) <= 1e-13 * a[2]
     assert np.array_equal(a[0] <= a[4], b[0] <= b[4])
