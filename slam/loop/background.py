@@ -71,6 +71,8 @@ class CandidateJob:
     gate: OdometryGate
     target: np.ndarray | None = None
     skip: str = ""
+    T_odom: np.ndarray | None = None  # the candidate's front-end pose (pairwise check)
+    travel: float = 0.0  # its odometric distance from the start (m)
 
 
 @dataclass
@@ -84,10 +86,15 @@ class KeyframeJob:
     source: np.ndarray | None
     due: int
     future: Future | None = field(default=None, repr=False, compare=False)
+    T_odom: np.ndarray | None = None  # the keyframe's front-end pose (pairwise check)
+    travel: float = 0.0  # its odometric distance from the start (m)
 
     def payload(self) -> KeyframeJob:
         """The job without its future (what is sent to a worker)."""
-        return KeyframeJob(self.kf_id, self.stamp, self.candidates, self.source, self.due)
+        return KeyframeJob(
+            self.kf_id, self.stamp, self.candidates, self.source, self.due, None,
+            self.T_odom, self.travel,
+        )  # fmt: skip
 
 
 def run_job(job: KeyframeJob, params: VerifyParams) -> list[tuple[VerifyResult, float]]:

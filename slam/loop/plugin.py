@@ -37,6 +37,7 @@ from slam.loop.background import (
     VerifyPool,
     run_job,
 )
+from slam.loop.consistency import ConsistencyParams, LoopConsistency, PendingLoop
 from slam.loop.scan_context import ScanContextParams, scan_context
 from slam.loop.scan_context_pp import (
     CartesianIndex,
@@ -61,7 +62,7 @@ PROPOSERS = ("descriptor", "radius")
 
 CSV_COLUMNS = (
     "source", "target", "stamp_source", "stamp_target", "score", "fitness", "yaw_deg",
-    "accepted", "reason",
+    "accepted", "reason", "ambiguity", "free_axes",
 )  # fmt: skip
 
 
@@ -134,6 +135,22 @@ class LoopClosurePlugin:
         times floam's, twelve times improved_floam's on the urban drive; the loop tests'
         injected 0.4 deg/m heading drift needs 3-4 %); 0.1 let a look-alike street 36 m
         along the road through after a 645 m loop in a block grid.
+        pair_window (keyframes, 0 = off) / pair_base (m) / pair_ratio / pair_base_deg /
+        pair_ratio_deg (deg per m): pairwise consistency (slam.loop.consistency): a loop that
+        passed verification and the odometry gate enters the graph only once another verified
+        loop whose keyframe lies within pair_window keyframes agrees with it through the
+        odometry of both passes, to base + ratio x the two segments' length (m), and it
+        agrees with more confirmed loops there than it contradicts; unconfirmed loops expire.
+        A corridor that aliases a registration metres along its axis rarely does so twice by
+        the same offset (building_loop: 3 false of 19 loops without it). The cost: a revisit
+        seen by a single keyframe closes no loop, and a loop enters the graph when its
+        partner does.
+        ambiguity_ratio / free_sigma (m): the degeneracy test of a registered loop
+        (slam.loop.verify.ambiguous_axis): slid 1-8 m along its weakest horizontal
+        direction, if the surfaces facing that direction keep ambiguity_ratio of their
+        overlap somewhere (a periodic corridor; a plain one has no such surfaces), the axis
+        is free: the loop's information along it becomes 1 / free_sigma^2, so the loop
+        claims the other five directions only (0: off).
         min_sigma_trans (m) / min_sigma_rot_deg: sigma floor of the loop noise.
         coarse_registration: gicp (KD-tree GICP on both clouds at coarse_voxel) or vgicp
         (small_gicp's voxelised GICP against the fine target's Gaussian voxels of
@@ -200,11 +217,18 @@ class LoopClosurePlugin:
         consistency_base: float = 3.0
         consistency_ratio: float = 0.04
         consistency_yaw_deg: float = 45.0
+        pair_window: int = 10
+        pair_base: float = 0.5
+        pair_ratio: float = 0.02
+        pair_base_deg: float = 2.0
+        pair_ratio_deg: float = 0.5
         min_sigma_trans: float = 0.05  # a 16-beam scan-to-scan loop is good to cm, not mm
         min_sigma_rot_deg: float = 0.5
         max_sigma_ratio: float = 100.0
         coarse_registration: str = "gicp"
         coarse_vgicp_resolution: float = 1.0
+        ambiguity_ratio: float = 0.8
+        free_sigma: float = 20.0
         verify_workers: int = 0
         verify_lag: int = 2
 
@@ -240,6 +264,12 @@ class LoopClosurePlugin:
                 raise ValueError(
                     f"verify_workers must be >= 0 and verify_lag >= 1 (keyframes), got "
                     f"{self.verify_workers} and {self.verify_lag}"
+                )
+            if self.pair_window < 0 or min(self.pair_base, self.pair_ratio, self.pair_base_deg,
+                                           self.pair_ratio_deg) < 0:  # fmt: skip
+                raise ValueError(
+                    "pair_window (keyframes) and pair_base / pair_ratio / pair_base_deg / "
+                    "pair_ratio_deg must be >= 0"
                 )
             if self.proposer == "radius" and not self.radius > 0:
                 raise ValueError(f"radius must be > 0 m for proposer radius, got {self.radius}")
@@ -290,14 +320,24 @@ class LoopClosurePlugin:
             max_sigma_ratio=cfg.max_sigma_ratio,
             coarse_registration=cfg.coarse_registration,
             coarse_vgicp_resolution=cfg.coarse_vgicp_resolution,
+            ambiguity_ratio=cfg.ambiguity_ratio,
+            free_sigma=cfg.free_sigma,
         )
         self.pool = (
             VerifyPool(cfg.verify_workers, self.verify_params) if cfg.verify_workers else None
         )
         self._jobs: list[KeyframeJob] = []  # submitted to the pool, oldest first
+        self.consistency = LoopConsistency(
+            ConsistencyParams(
+                cfg.pair_window, cfg.pair_base, cfg.pair_ratio, cfg.pair_base_deg,
+                cfg.pair_ratio_deg,
+            )
+        )  # fmt: skip
+        self.unconfirmed = 0  # verified loops that no consistent partner confirmed
         self.cc_index: CartesianIndex | None = None  # SC++ only, once the geometry is fixed
         self.events: list[LoopConstraint] = []
-        self._event_meta: list[tuple[float, float, float]] = []  # stamps and yaw per event
+        # per event: stamps, yaw (deg), ambiguity, number of free axes
+        self._event_meta: list[tuple[float, float, float, float, int]] = []
         self._row_of: dict[int, int] = {}
         self._travel: dict[int, float] = {}  # kf id -> odometric distance since the start (m)
         self._last_accepted = -(10**9)
@@ -356,6 +396,7 @@ class LoopClosurePlugin:
         the pipeline adds them before the final optimisation); nothing when verifying
         in-process."""
         factors = self._collect(None)
+        self._expire(None)
         return factors
 
     def close(self) -> None:
@@ -520,6 +561,8 @@ class LoopClosurePlugin:
             else:
                 init = yaw_matrix(cand.yaw)
             cj = CandidateJob(cand, init, self._gate(graph, kf, cand.kf_id))
+            cj.T_odom = np.asarray(graph.keyframes[cand.kf_id].pose_odom, dtype=np.float64)
+            cj.travel = self._travel.get(cand.kf_id, 0.0)
             cj.skip = self._unreachable(graph, kf, cand.kf_id, init)
             if not cj.skip:
                 T_w_cand = self._estimate_id(graph, cand.kf_id) if cfg.neighbours > 0 else np.eye(4)
@@ -529,7 +572,10 @@ class LoopClosurePlugin:
         if any(not cj.skip for cj in jobs):
             T_w_cur = self._estimate(graph, kf) if cfg.neighbours > 0 else np.eye(4)
             source = self._local_cloud(graph, kf.id, T_w_cur)
-        return KeyframeJob(kf.id, kf.stamp, jobs, source, kf.id + cfg.verify_lag)
+        return KeyframeJob(
+            kf.id, kf.stamp, jobs, source, kf.id + cfg.verify_lag, None,
+            np.asarray(kf.pose_odom, dtype=np.float64), self._travel.get(kf.id, 0.0),
+        )  # fmt: skip
 
     def _finish_job(self, job: KeyframeJob, results: list) -> list[gtsam.BetweenFactorPose3]:
         """Record a job's results (events, loops.csv rows, counters); the loop factor of the
@@ -554,22 +600,49 @@ class LoopClosurePlugin:
                     reason=res.reason,
                 )
             )
-            self._event_meta.append((job.stamp, self.db.stamp(cand.row), res.yaw_deg))
+            self._event_meta.append(
+                (job.stamp, self.db.stamp(cand.row), res.yaw_deg, res.ambiguity,
+                 len(res.free_axes))
+            )  # fmt: skip
             if not res.accepted:
                 log.debug("loop %d -> %d rejected: %s", job.kf_id, cand.kf_id, res.reason)
                 continue
             log.info(
-                "loop %d -> %d accepted: sc %.3f fitness %.3f m overlap %.2f yaw %.1f deg",
+                "loop %d -> %d verified: sc %.3f fitness %.3f m overlap %.2f yaw %.1f deg",
                 job.kf_id, cand.kf_id, cand.distance, res.fitness, res.overlap, res.yaw_deg,
             )  # fmt: skip
-            self._last_accepted = job.kf_id
             noise = robust_noise(information_noise(res.info), cfg.robust, cfg.robust_param)
-            return [
-                gtsam.BetweenFactorPose3(
-                    key(cand.kf_id), key(job.kf_id), pose3(res.T_target_source), noise
-                )
-            ]
+            factor = gtsam.BetweenFactorPose3(
+                key(cand.kf_id), key(job.kf_id), pose3(res.T_target_source), noise
+            )
+            event = self.events[-1]
+            event.accepted, event.reason = False, "awaiting a consistent loop"
+            pending = PendingLoop(
+                cand.kf_id, job.kf_id, np.asarray(res.T_target_source, dtype=np.float64),
+                cj.T_odom, job.T_odom, cj.travel, job.travel,
+                payload=(event, factor),
+            )  # fmt: skip
+            out = []
+            for m in self.consistency.add(pending):
+                ev, f = m.payload
+                ev.accepted, ev.reason = True, ""
+                out.append(f)
+                log.info("loop %d -> %d accepted", m.source, m.target)
+            if out:
+                self._last_accepted = job.kf_id
+            self._expire(job.kf_id)
+            return out
+        self._expire(job.kf_id)
         return []
+
+    def _expire(self, latest: int | None) -> None:
+        """Mark the verified loops no partner can confirm any more (None: all pending)."""
+        for m in self.consistency.expire(latest):
+            ev, _ = m.payload
+            ev.reason = (
+                f"unconfirmed: no consistent loop within {self.config.pair_window} keyframes"
+            )
+            self.unconfirmed += 1
 
     def _verify_candidates(
         self, kf: Keyframe, candidates: list[Candidate], graph: GraphView
@@ -658,6 +731,7 @@ class LoopClosurePlugin:
             "registered": self.registrations,
             "skipped": self.skipped,
             "accepted": len(self.accepted),
+            "unconfirmed": self.unconfirmed,
             "detect_ms_mean": float(np.mean(self.detect_ms)) if n else 0.0,
             "detect_ms_max": float(np.max(self.detect_ms)) if n else 0.0,
             "verify_ms_mean": float(np.mean(self.verify_ms)) if self.verify_ms else 0.0,
@@ -674,10 +748,11 @@ class LoopClosurePlugin:
         with Path(path).open("w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(CSV_COLUMNS)
-            for e, (st_s, st_t, yaw) in zip(self.events, self._event_meta, strict=True):
+            for e, (st_s, st_t, yaw, amb, free) in zip(self.events, self._event_meta, strict=True):
                 w.writerow(
                     [
                         e.source, e.target, f"{st_s:.9f}", f"{st_t:.9f}", f"{e.score:.6f}",
                         f"{e.fitness:.6f}", f"{yaw:.3f}", int(e.accepted), e.reason,
+                        f"{amb:.3f}", free,
                     ]
                 )  # fmt: skip

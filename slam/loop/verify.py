@@ -75,7 +75,12 @@ class VerifyParams:
     look-alike place that matches only half its structure at 0.3 m offset is no revisit
     (real same-place scans: 0.84 at 0.5-2 m, 0.53 at 17 m apart).
     yaw_tolerance_deg: max |registered yaw - guess yaw|. min_sigma_*: sigma floor of the
-    loop's information; max_sigma_ratio caps the weakest direction's sigma at that multiple."""
+    loop's information; max_sigma_ratio caps the weakest direction's sigma at that multiple.
+    ambiguity_*: the degeneracy test of the result (:func:`ambiguous_axis`): the result is
+    slid along its weakest horizontal direction by ambiguity_min_shift..ambiguity_max_shift m
+    (steps of ambiguity_step m, both ways); if some slide keeps ambiguity_ratio of the
+    result's overlap, the alignment is not unique along that axis (a plain or periodic
+    corridor), and the loop's information along it is set to free_sigma m (0 ratio: off)."""
 
     voxel: float = 0.25
     max_correspondence: float = 1.0
@@ -104,6 +109,11 @@ class VerifyParams:
     max_sigma_ratio: float = 100.0
     max_judged: int = 3000
     num_threads: int = 1
+    ambiguity_ratio: float = 0.8
+    ambiguity_min_shift: float = 1.0
+    ambiguity_max_shift: float = 8.0
+    ambiguity_step: float = 0.5
+    free_sigma: float = 20.0
 
 
 @dataclass
@@ -121,6 +131,8 @@ class VerifyResult:
     reason: str = ""
     start: str = "guess"
     stages: list[str] = field(default_factory=list)
+    free_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    ambiguity: float = 0.0
 
 
 def yaw_of(T: np.ndarray) -> float:
@@ -294,7 +306,12 @@ def _shape_covariances(prepared: _Prepared, query_idx: np.ndarray, k: int) -> np
 
 
 def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> np.ndarray:
-    """The source points a verification is judged on.
+    """The source points a verification is judged on (:func:`judged_indices`)."""
+    return source.points[judged_indices(source, R, max_points)]
+
+
+def judged_indices(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> np.ndarray:
+    """Indices of the source points a verification is judged on.
 
     Steep (|normal_z| < 0.7 after rotation R: walls, poles, trunks, facades) because ground
     and ceiling overlap in almost any two scans and would make unrelated places look alike;
@@ -307,7 +324,7 @@ def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> n
     pts = source.points
     steep_idx = np.flatnonzero(np.abs(source.normals @ R.T[:, 2]) < 0.7)
     if len(steep_idx) < MIN_JUDGED_POINTS:
-        return pts
+        return np.arange(len(pts))
     if len(steep_idx) > max_points:
         steep_idx = steep_idx[np.linspace(0, len(steep_idx) - 1, max_points).astype(np.intp)]
     # shape of the steep points only (neighbours among all points), from raw covariances:
@@ -316,8 +333,8 @@ def judged_points(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> n
     ev = np.linalg.eigvalsh(cov)  # ascending
     structured = ev[:, 0] < MAX_SURFACE_VARIATION * np.maximum(ev.sum(axis=1), 1e-12)
     if structured.sum() >= MIN_JUDGED_POINTS:
-        return pts[steep_idx[structured]]
-    return pts[steep_idx]
+        return steep_idx[structured]
+    return steep_idx
 
 
 def alignment_score(
@@ -345,6 +362,74 @@ def alignment_score(
     overlap = float(inl.mean())
     fitness = float(np.sqrt(np.mean(plane[inl] ** 2))) if inl.any() else float("inf")
     return overlap, fitness
+
+
+def weakest_horizontal(H: np.ndarray) -> np.ndarray:
+    """Unit (3,) direction in the source frame, horizontal, that the registration Hessian
+    (6x6, rotation first, right perturbation T Exp(delta)) constrains least: the weaker
+    eigenvector of the horizontal 2x2 block of the translation information with the
+    rotation marginalised out (Schur complement; Zhang et al. 2016, the eigenvalue test)."""
+    H = 0.5 * (np.asarray(H, dtype=np.float64) + np.asarray(H, dtype=np.float64).T)
+    if not np.all(np.isfinite(H)):
+        return np.array([1.0, 0.0, 0.0])
+    Hrr, Hrt, Htt = H[:3, :3], H[:3, 3:], H[3:, 3:]
+    S = Htt - Hrt.T @ np.linalg.pinv(Hrr) @ Hrt
+    _, vec = np.linalg.eigh(S[:2, :2])
+    return np.array([vec[0, 0], vec[1, 0], 0.0])
+
+
+def ambiguous_axis(
+    judged: np.ndarray,
+    normals: np.ndarray,
+    target: _Prepared,
+    T: np.ndarray,
+    H: np.ndarray,
+    p: VerifyParams,
+) -> tuple[np.ndarray, float]:
+    """Whether the alignment T is unique along its weakest horizontal direction v.
+
+    Only surfaces facing v (judged source points with |normal . v| > 0.5: door jambs,
+    pillars, the end of a corridor) fix the position along it, so only they are scored
+    (:func:`alignment_score`): at the result, and slid by d along v (source frame,
+    T Exp(d v)) for ambiguity_min_shift <= |d| <= ambiguity_max_shift. The ambiguity is the
+    best slid overlap over the result's: a periodic corridor meets its next bay again (~1),
+    a room's end walls miss at a metre (< 0.5). Fewer than MIN_JUDGED_POINTS such points (a
+    plain corridor) is degeneracy itself (ambiguity 1). Returns (v in the target frame
+    (1, 3), or (0, 3) when unique; ambiguity).
+    """
+    none = np.zeros((0, 3))
+    if p.ambiguity_ratio <= 0 or len(judged) == 0:
+        return none, 0.0
+    v = weakest_horizontal(H)
+    facing = np.abs(np.asarray(normals) @ v) > 0.5
+    axis = (T[:3, :3] @ v)[None, :]
+    if facing.sum() < MIN_JUDGED_POINTS:
+        return axis, 1.0
+    pts = judged[facing]
+    base = alignment_score(pts, target, T, p)[0]
+    if base <= 0:
+        return axis, 1.0
+    steps = np.arange(p.ambiguity_min_shift, p.ambiguity_max_shift + 1e-9, p.ambiguity_step)
+    best = 0.0
+    for d in np.concatenate([steps, -steps]):
+        Ts = np.array(T, dtype=np.float64)
+        Ts[:3, 3] = T[:3, 3] + T[:3, :3] @ (d * v)
+        best = max(best, alignment_score(pts, target, Ts, p)[0])
+    ratio = best / base
+    return (axis if ratio >= p.ambiguity_ratio else none), float(ratio)
+
+
+def free_information(info: np.ndarray, axes_source: np.ndarray, free_sigma: float) -> np.ndarray:
+    """``info`` (6x6, rotation first) with the translation directions ``axes_source`` (k, 3,
+    source frame: the loop factor's tangent) left to the other factors: their information
+    becomes 1 / free_sigma^2 and their coupling to the other directions is removed."""
+    out = np.asarray(info, dtype=np.float64)
+    for a in np.asarray(axes_source, dtype=np.float64).reshape(-1, 3):
+        u = np.zeros(6)
+        u[3:] = a / np.linalg.norm(a)
+        P = np.eye(6) - np.outer(u, u)
+        out = P @ out @ P + np.outer(u, u) / free_sigma**2
+    return 0.5 * (out + out.T)
 
 
 def required_overlap(offset: float, p: VerifyParams) -> float:
@@ -418,7 +503,8 @@ def verify(
     elif coarse:
         ct, cs = (_prepare(tgt, p.coarse_voxel, p.num_threads),
                   _prepare(src, p.coarse_voxel, p.num_threads))  # fmt: skip
-    judged = judged_points(fs, T0[:3, :3], p.max_judged)
+    judged_idx = judged_indices(fs, T0[:3, :3], p.max_judged)
+    judged, judged_normals = fs.points[judged_idx], fs.normals[judged_idx]
     bev_tgt = bev_src = bt = None
     if p.global_search > 0.0:
         bev_tgt, bev_src = (ct.points, cs.points) if coarse else (tgt, src)
@@ -486,6 +572,11 @@ def verify(
     info = scaled_information(
         np.asarray(fine.H), p.min_sigma_trans, np.radians(p.min_sigma_rot_deg), p.max_sigma_ratio
     )
+    free, ambiguity = np.zeros((0, 3)), 0.0
+    if fine.converged and p.ambiguity_ratio > 0:
+        free, ambiguity = ambiguous_axis(judged, judged_normals, ft, T, np.asarray(fine.H), p)
+        if len(free):  # the factor's tangent is the source frame: axes back from the target
+            info = free_information(info, free @ T[:3, :3], p.free_sigma)
     reason = ""
     if "fine" not in kept or not fine.converged:
         reason = "gicp did not converge"
@@ -502,5 +593,6 @@ def verify(
             f"yaw {np.degrees(yaw):.1f} deg disagrees with guess {np.degrees(guess_yaw):.1f} deg"
         )
     return VerifyResult(
-        not reason, T, fitness, overlap, float(np.degrees(yaw)), info, reason, name, kept
-    )
+        not reason, T, fitness, overlap, float(np.degrees(yaw)), info, reason, name, kept,
+        free, ambiguity,
+    )  # fmt: skip
