@@ -2,7 +2,12 @@
 small_gicp's own scan-to-map odometry run on the same scans in the same session.
 
     .venv/bin/python benchmarks/bench_scenes.py --scene urban --sensor vlp16 hdl64 \\
-        --configs improved_floam floam improved_floam_loop [--frames N]
+        --configs improved_floam floam improved_floam_loop [--frames N] \\
+        [--set frontend.plane_voxel=0.3 ...] \\
+        [--variant off:frontend.max_scan_points=0 60k:frontend.max_scan_points=60000 ...]
+
+--set overrides apply to every run; each --variant LABEL:KEY=V[,KEY=V...] runs every config
+once more with its overrides (an A/B in one session: same load, same scans).
 
 One row per scene x sensor x config: APE RMSE / mean / max (SE(3)-aligned, m), KITTI drift
 (%/10 m... the devkit's t_rel over its segment lengths, scaled ones on short runs), the
@@ -38,7 +43,7 @@ def _run(job: dict) -> dict:
     from slam.eval.metrics import evaluate
     from slam.run import run_one
 
-    config = load_config(job["config"])
+    config = load_config(job["config"], job.get("overrides") or [])
     if job["frames"]:
         config.source.max_frames = job["frames"]
     out = Path(job["out"])
@@ -49,7 +54,7 @@ def _run(job: dict) -> dict:
     return {
         "scene": job["scene"],
         "sensor": job["sensor"],
-        "config": job["config"],
+        "config": job["config"] + (f" [{job['variant']}]" if job.get("variant") else ""),
         "frames": summary["frames"],
         "path_m": round(res.path_length, 1),
         "ape_rmse": res.ape_trans["rmse"],
@@ -125,7 +130,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, help="first N frames only")
     ap.add_argument("--no-reference", action="store_true", help="skip small_gicp")
     ap.add_argument("--json", help="also write the rows here")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="KEY=V")
+    ap.add_argument("--variant", nargs="+", default=[], help="LABEL:KEY=V[,KEY=V...]")
     args = ap.parse_args()
+    variants = [("", [])]
+    if args.variant:
+        variants = []
+        for v in args.variant:
+            label, _, sets = v.partition(":")
+            variants.append((label, [x for x in sets.split(",") if x]))
     from slam.sim.cache import ensure_sequence
 
     ctx = mp.get_context("spawn")
@@ -142,8 +155,15 @@ def main() -> None:
                     "frames": args.frames,
                 }
                 jobs = [
-                    {**base, "config": c, "out": f"{tmp}/{scene}-{sensor}-{c}"}
+                    {
+                        **base,
+                        "config": c,
+                        "variant": label,
+                        "overrides": args.overrides + sets,
+                        "out": f"{tmp}/{scene}-{sensor}-{c}-{label}",
+                    }
                     for c in args.configs
+                    for label, sets in variants
                 ]
                 for job in jobs:
                     with ctx.Pool(1) as pool:
