@@ -359,17 +359,22 @@ def window_knn(
     prefmax = np.empty(n_rings + 1)
     sufmin[n_rings] = np.inf
     prefmax[0] = -np.inf
-    bstart = np.zeros(n_rings + 1, dtype=np.int64)
+    # no np.full / np.zeros at this level: each would be a parallel region of its own
+    bstart = np.empty(n_rings + 1, dtype=np.int64)
+    bstart[0] = 0
     for j in range(n_rings):
         clo[j] = min(np.cos(lo[j]), np.cos(hi[j]))
         prefmax[j + 1] = max(prefmax[j], hi[j])
         bstart[j + 1] = bstart[j] + (start[j + 1] - start[j] + B - 1) // B
     for j in range(n_rings - 1, -1, -1):
         sufmin[j] = min(sufmin[j + 1], lo[j])
-    rmin = np.full(bstart[n_rings], np.inf)
-    rmax = np.zeros(bstart[n_rings])
+    rmin = np.empty(bstart[n_rings])
+    rmax = np.empty(bstart[n_rings])
     for j in prange(n_rings):  # each ring's blocks apart
         a = start[j]
+        for ib in range(bstart[j], bstart[j + 1]):
+            rmin[ib] = np.inf
+            rmax[ib] = 0.0
         for u in range(start[j + 1] - a):
             ib = bstart[j] + u // B
             rmin[ib] = min(rmin[ib], rng[a + u])
@@ -652,18 +657,22 @@ def finish_rows(order, in_place, idx_s, d2_s, cert_s, visits_s, idx, dist, cert,
     if in_place:
         flat = dist.reshape(n * k)
         for c in prange(n_chunks):
-            for j in range(c * ROW_CHUNK * k, min(n, (c + 1) * ROW_CHUNK) * k):
-                flat[j] = np.sqrt(flat[j])
+            # a slice indexed from 0: provably non-negative indices, so the loop compiles to
+            # vsqrtpd (2.1x less time than the same loop over the flat array's indices)
+            seg = flat[c * ROW_CHUNK * k : min(n, (c + 1) * ROW_CHUNK) * k]
+            for j in range(len(seg)):
+                seg[j] = np.sqrt(seg[j])
         return
     inv = np.empty(n, dtype=np.int64)
-    for c in prange(n_chunks):
-        for s in range(c * ROW_CHUNK, min(n, (c + 1) * ROW_CHUNK)):
-            inv[order[s]] = s
+    for s in range(n):  # serial: one parallel region per call (each costs a wake-up)
+        inv[order[s]] = s
     for c in prange(n_chunks):
         for o in range(c * ROW_CHUNK, min(n, (c + 1) * ROW_CHUNK)):
             s = inv[o]
+            src = d2_s[s]
+            dst = dist[o]
             for t in range(k):
-                dist[o, t] = np.sqrt(d2_s[s, t])
+                dst[t] = np.sqrt(src[t])
             for t in range(k + 1):
                 idx[o, t] = idx_s[s, t]
             cert[o] = cert_s[s]

@@ -84,39 +84,31 @@ def exp_neg(x: np.ndarray, scale: float, w: np.ndarray, bits: np.ndarray) -> Non
 def weighted_sor_kernel_simd(
     dist: np.ndarray, alpha: float, delta: float, max_density_ratio: float
 ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
-    """``weighted_sor_kernel`` with the exp of eq. (4) vectorised (``exp_neg``), in parallel
-    chunks of EXP_CHUNK rows; dist C-contiguous. The sums of (5), (8), (9) and rho_avg go
-    row by row into per-chunk partial sums, added in chunk order: the same for any thread
-    count (the earlier single running sum over all N k distances was a 4-cycle add chain
-    per value, 0.4 ms of a 16-beam scan); values within 1e-14 of ``weighted_sor_kernel``
-    (tests/test_sor.py)."""
+    """``weighted_sor_kernel`` with the exp of eq. (4) vectorised (``exp_neg``) in parallel
+    chunks of EXP_CHUNK rows (one parallel region: the rest is serial, each region costs a
+    thread wake-up); dist C-contiguous. Sums go row by row (the earlier single running sum
+    over all N k distances was a 4-cycle add chain per value, 0.4 ms of a 16-beam scan), d
+    in per-chunk partial sums added in chunk order: the same for any thread count; values
+    within 1e-13 of ``weighted_sor_kernel`` (tests/test_sor.py)."""
     n, k = dist.shape
     n_chunks = (n + EXP_CHUNK - 1) // EXP_CHUNK
-    part = np.zeros((n_chunks, 4))  # per chunk: sum of distances, rho, d, (d - mu)^2
     d = np.empty(n)
     rho = np.empty(n)
     theta = np.empty(n)
     vol = 4.0 / 3.0 * np.pi
-    for c in prange(n_chunks):
-        total = 0.0
-        sum_rho = 0.0
-        for i in range(c * EXP_CHUNK, min(n, (c + 1) * EXP_CHUNK)):
-            row = 0.0
-            for t in range(k):
-                row += dist[i, t]
-            total += row
-            r = max(dist[i, k - 1], 1e-9)
-            rho[i] = k / (vol * (r * r * r))
-            sum_rho += rho[i]
-        part[c, 0] = total
-        part[c, 1] = sum_rho
     total = 0.0
     sum_rho = 0.0
-    for c in range(n_chunks):
-        total += part[c, 0]
-        sum_rho += part[c, 1]
+    for i in range(n):
+        row = 0.0
+        for t in range(k):
+            row += dist[i, t]
+        total += row
+        r = max(dist[i, k - 1], 1e-9)
+        rho[i] = k / (vol * (r * r * r))
+        sum_rho += rho[i]
     d_avg = max(total / (n * k), 1e-12)  # eq. (5)
     flat = dist.reshape(n * k)
+    part = np.empty(n_chunks)  # per chunk: sum of d
     for c in prange(n_chunks):
         a = c * EXP_CHUNK
         b = min(n, a + EXP_CHUNK)
@@ -134,22 +126,16 @@ def weighted_sor_kernel_simd(
                 swd += wt * dist[i, t]
             d[i] = swd / sw  # eq. (6)
             sum_d += d[i]
-        part[c, 2] = sum_d
+        part[c] = sum_d
     sum_d = 0.0
     for c in range(n_chunks):
-        sum_d += part[c, 2]
+        sum_d += part[c]
     mu = sum_d / n  # eq. (8)
-    for c in prange(n_chunks):
-        var = 0.0
-        for i in range(c * EXP_CHUNK, min(n, (c + 1) * EXP_CHUNK)):
-            var += (d[i] - mu) ** 2
-        part[c, 3] = var
     var = 0.0
-    for c in range(n_chunks):
-        var += part[c, 3]
+    for i in range(n):
+        var += (d[i] - mu) ** 2
     sigma = np.sqrt(var / (n - 1)) + delta  # eq. (9)
     rho_avg = sum_rho / n
-    for c in prange(n_chunks):
-        for i in range(c * EXP_CHUNK, min(n, (c + 1) * EXP_CHUNK)):
-            theta[i] = mu + alpha * sigma * (1.0 + min(rho_avg / rho[i], max_density_ratio))
-    return d, mu, sigma, rho, theta  # theta: eq. (7)
+    for i in range(n):
+        theta[i] = mu + alpha * sigma * (1.0 + min(rho_avg / rho[i], max_density_ratio))  # (7)
+    return d, mu, sigma, rho, theta
