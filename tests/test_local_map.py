@@ -12,8 +12,10 @@ def test_cap_per_voxel_and_covariances_follow_points():
     assert m.add(pts, covs) == 5  # 3 in the first voxel, 2 in the second
     assert m.num_voxels == 2
     assert sorted(m.covs[:, 0, 0].tolist()) == [0, 1, 2, 5, 6]
+    assert m.last_accepted.tolist() == [0, 1, 2, 5, 6]  # the input points now the last rows
+    assert np.array_equal(m.points[-2:], pts[m.last_accepted[-2:]])
     assert m.add(pts[:1], covs[:1]) == 0  # the voxel is full
-    assert len(m) == 5
+    assert len(m) == 5 and len(m.last_accepted) == 0
 
 
 def test_map_stays_bounded_while_driving():

@@ -131,6 +131,7 @@ class VoxelHashMap:
         self._tree: cKDTree | None = None
         self._tree_version = -1
         self._pruned_at: np.ndarray | None = None  # sensor position at the last pruning
+        self._last_accepted = np.zeros(0, dtype=np.int64)
 
     @property
     def _n(self) -> int:
@@ -207,6 +208,7 @@ class VoxelHashMap:
             self._state,
             accepted,
         )
+        self._last_accepted = accepted[:n_acc]
         if n_acc:
             keep = accepted[:n_acc]
             self._pts[n0 : n0 + n_acc] = points[keep]
@@ -240,11 +242,19 @@ class VoxelHashMap:
                 self.remove_far(origin)
                 self._pruned_at = origin.copy()
         added = 0
+        self._last_accepted = np.zeros(0, dtype=np.int64)
         if len(points):
             added = self._append(points, covs, voxel_hash(points, self.cfg.voxel_size))
         if added:
             self.version += 1
         return added
+
+    @property
+    def last_accepted(self) -> np.ndarray:
+        """Input positions of the points the last ``add`` kept, ascending (they became the
+        last rows, in this order): e.g. to fill in the covariances of the new rows after an
+        ``add`` with placeholders."""
+        return self._last_accepted
 
     def remove_far(self, origin: np.ndarray) -> int:
         """Drop points farther than ``radius`` from ``origin`` (3,); returns how many.
