@@ -18,6 +18,7 @@ unlike wall time, a loaded machine does not inflate.
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import tarfile
 import tempfile
@@ -95,13 +96,86 @@ def profile(scans: list[Scan], config: str) -> dict[str, float]:
     return row
 
 
+def _scans(bag: Path):
+    return (s for s in open_source(bag) if isinstance(s, Scan))
+
+
+def growth(
+    scene: str, config: str, window: int = 100, frames: int | None = None
+) -> dict[str, tuple[float, float]]:
+    """The front end alone over a whole simulated sequence: CPU ms per frame (this thread's
+    clock, which other processes on the machine do not inflate) of each improved_floam stage
+    and of the local map's k-NN queries, mean over the first and the last ``window`` frames;
+    also the map's size. Answers "which stage grows with the length of the run". frames:
+    a shorter cached sequence of the scene (default: the whole one)."""
+    import frontends.improved_floam as IF
+    from slam.mapping.local_map import VoxelHashMap
+    from slam.plugins import instantiate
+
+    clocks: dict[str, float] = {}
+
+    def timed(owner, attr: str, label) -> None:
+        f = getattr(owner, attr)
+
+        def wrapper(*a, **kw):
+            c = time.thread_time()
+            try:
+                return f(*a, **kw)
+            finally:
+                key = label(a, kw) if callable(label) else label
+                clocks[key] = clocks.get(key, 0.0) + 1e3 * (time.thread_time() - c)
+
+        setattr(owner, attr, wrapper)
+
+    timed(IF, "neighbourhoods", "sor k-NN")
+    timed(IF, "apply_sor", "sor filter")
+    timed(IF, "extract_features", "features")
+    timed(IF, "gicp_align", "registration")
+    timed(IF.ImprovedFloam, "_insert", "map update")
+    timed(IF, "estimate_covariances", lambda a, kw: "map eq.(1)" if "neighbours" in kw
+          else "source covariances")  # fmt: skip
+    timed(VoxelHashMap, "query", lambda a, kw: f"map k-NN k={kw.get('k', 1)}")
+    section = load_config(config).frontend
+    sim = ensure_sequence(scene) if frames is None else ensure_sequence(scene, frames=frames)
+    warm = instantiate("slam.frontends", section, "frontend")
+    for scan in list(itertools.islice(_scans(sim.bag), 3)):  # load the compiled kernels
+        warm.process(scan)
+    fe = instantiate("slam.frontends", section, "frontend")
+    rows = []
+    for scan in _scans(sim.bag):
+        clocks.clear()
+        c = time.thread_time()
+        fe.process(scan)
+        row = dict(clocks, frame=1e3 * (time.thread_time() - c))
+        row["map points"] = float(fe._map_size())
+        rows.append(row)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    n = len(rows)
+    first, last = rows[: min(window, n)], rows[max(n - window, 0) :]
+    return {k: (float(np.mean([r.get(k, 0.0) for r in first])),
+                float(np.mean([r.get(k, 0.0) for r in last]))) for k in keys}  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--config", default="improved_floam_loop")
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=DATASETS)
     ap.add_argument("--markdown", action="store_true", help="print a README table")
+    ap.add_argument(
+        "--growth",
+        metavar="SCENE",
+        help="instead: the front end over the whole sequence SCENE, CPU ms per stage over its"
+        " first / last 100 frames",
+    )
     args = ap.parse_args()
+    if args.growth:
+        config = args.config.removesuffix("_loop")
+        print(f"{args.growth}, {config}: CPU ms per frame, first / last 100 frames")
+        for key, (a, b) in growth(args.growth, config).items():
+            change = f"{100 * (b / a - 1):+6.1f} %" if a else ""
+            print(f"{key:28s} {a:12.2f} {b:12.2f}  {change}")
+        return
     columns: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.datasets:
