@@ -37,7 +37,7 @@ import numpy as np
 from slam.errors import InputError
 from slam.preprocess.range_image_kernels import (
     box_knn,
-    finish_rows,
+    gather_rows,
     range_image_into,
     ring_ranks,
     window_knn,
@@ -156,8 +156,7 @@ def range_image_knn(
         certified[:] = False
         visits[:] = 0
         return RangeImageKnn(idx, dist, certified, visits)
-    # stored ring by ring (most steps of the order +-1): rows written in place (squared
-    # distances in dist until finish_rows), else in sorted order into scratch
+    # stored ring by ring (most steps of the order +-1): rows written in place, else sorted
     in_place = n < 2 or np.count_nonzero(np.abs(np.diff(order)) == 1) > n // 2
     if in_place:
         rows = idx, dist, certified, visits
@@ -180,5 +179,6 @@ def range_image_knn(
             if len(bad) <= MAX_UNCERTIFIED * n:
                 box_knn(xyz_s, order, bad, k, rows[0], rows[1], in_place)
                 done = True
-        finish_rows(order, in_place, *rows, idx, dist, certified, visits)
+        if not in_place:
+            gather_rows(order, *rows, idx, dist, certified, visits)
     return RangeImageKnn(idx, dist, certified, visits, done)
