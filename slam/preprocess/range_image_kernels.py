@@ -12,7 +12,7 @@ from numba import njit, prange
 # (the TBB of the wheels we depend on is older than numba accepts and it warns on first use)
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
-RING_BLOCK = 16  # ring points summarised by their range interval (8, 32: within 3 %)
+RING_BLOCK = 16  # ring points summarised by their range interval (8, 32: within 3 %); 2^n
 H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at 100 m range)
 
 
@@ -500,9 +500,10 @@ def window_knn(
                                     break  # the frontier bounds everything beyond it
                                 # entering a block at its edge: skip it whole when its range
                                 # interval and angle keep it beyond the k-th distance
-                                b0 = u - u % B
-                                b1 = min(cnt, b0 + B) - 1
-                                if u == (b0 if step > 0 else b1):
+                                um = u & (B - 1)  # u % B (0 <= u < cnt, B a power of 2)
+                                if um == 0 if step > 0 else (um == B - 1 or u == cnt - 1):
+                                    b0 = u - um
+                                    b1 = min(cnt, b0 + B) - 1
                                     qf = a + (b1 if step > 0 else b0)
                                     far = 1.0 - (cx[qf] * cxp + cy[qf] * cyp)
                                     hb = he + coef * min(one_m_dot, far)
