@@ -74,9 +74,11 @@ class Dpcr2dConfig:
     prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
     grids (5 cm cells).
 
-    revisit_search: on entering a region mapped before, after ``revisit_path`` m (or
-    more) elsewhere, the submap is searched over the wide window ``revisit`` (rotations
-    and shifts, ``slam.registration.correlative2d``) on the region's map before the
+    revisit_search: on entering a region, the submap is searched over the wide window
+    ``revisit`` (rotations and shifts, ``slam.registration.correlative2d``) on the maps
+    of the regions around (centres within ``revisit_radius`` m, the nearest
+    ``revisit_regions``) that the robot left ``revisit_path`` m ago or more (drawn before
+    the drift since; the drifted pose may well fall in a region never mapped), before the
     second registration, which only converges within ~0.3 m / a few degrees: real
     revisits come back 15 deg / metres off. The match is taken when it is unique (second
     peak / best <= ``revisit_max_uniqueness``) and, after PLICP, ``revisit_min_inliers``
@@ -106,7 +108,9 @@ class Dpcr2dConfig:
     regional_plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
     revisit_search: bool = True
     revisit_path: float = 10.0
-    revisit: CorrelativeConfig = field(default_factory=CorrelativeConfig)
+    revisit_radius: float = 6.0
+    revisit_regions: int = 6
+    revisit: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(max_shift=4.0))
     revisit_max_uniqueness: float = 0.8
     revisit_min_inliers: float = 0.5
     revisit_match_distance: float = 0.1
@@ -125,7 +129,7 @@ class _Region:
     grid: OccupancyGrid
     ref: LineReference | None = None
     refreshed_at: int = -(10**9)
-    left_at: float = 0.0  # path length (m) when the robot was last in the region
+    left_at: float | None = None  # path length (m) when the robot last left the region
 
 
 class Dpcr2d:
@@ -252,15 +256,33 @@ class Dpcr2d:
         self._rebuild_submap()
         self._refresh_submap_lines()
 
-    def _reanchor(self, region: _Region, extras: dict) -> bool:
-        """Wide search of the submap on the map of a region entered again (see
-        ``revisit_search``); True when the robot and the submap moved onto it."""
+    def _old_maps(self) -> list[_Region]:
+        """The maps of the regions near the robot (centres within ``revisit_radius``) that
+        it left ``revisit_path`` m ago or more, nearest first (at most ``revisit_regions``):
+        what a revisit should land on. The maps it drew since, in its current (maybe
+        drifted) frame, are left out."""
+        cfg = self.cfg
+        near = []
+        for region_id, region in self.regions.items():
+            if region.left_at is None or self.path - region.left_at < cfg.revisit_path:
+                continue
+            d = float(np.linalg.norm(self.division.centre(region_id) - self.pose[:2]))
+            if d <= cfg.revisit_radius:
+                near.append((d, region_id))
+        return [self.regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
+
+    def _reanchor(self, maps: list[_Region], extras: dict) -> bool:
+        """Wide search of the submap on the old maps around the robot (see
+        ``revisit_search``); True when the robot and the submap moved onto them."""
         cfg = self.cfg
         target = self.submap.obstacle_points()
-        reference = region.grid.obstacle_points()
-        ref = self._region_ref(region)
-        if ref is None or len(target) < cfg.min_points or len(reference) < cfg.min_points:
+        hits = [m.grid.obstacle_hits() for m in maps]
+        reference = np.vstack([h[0] for h in hits])
+        if len(target) < cfg.min_points or len(reference) < cfg.min_points:
             return False
+        weights = np.concatenate([h[1] for h in hits])
+        lines = extract_lines(reference, self.cfg.region_grid.resolution, cfg.lines, weights)
+        ref = LineReference.from_lines(lines)
         self.counts["revisit_searches"] += 1
         found = correlative_search(reference, target, np.zeros(3), cfg.revisit)
         extras.update(revisit_score=found.score, revisit_uniqueness=found.uniqueness)
@@ -270,7 +292,9 @@ class Dpcr2d:
         dist, _ = ref.tree.query(transform2d(res.pose, target))
         inliers = float(np.mean(dist < cfg.revisit_match_distance))
         refine = compose2d(inverse2d(found.pose), res.pose)
-        extras.update(revisit_inliers=inliers)
+        extras.update(revisit_inliers=inliers, revisit_m=float(np.linalg.norm(res.pose[:2])),
+                      revisit_deg=float(np.degrees(res.pose[2])),
+                      revisit_refine_m=float(np.linalg.norm(refine[:2])))  # fmt: skip
         if (
             inliers < cfg.revisit_min_inliers
             or res.matches < cfg.regional_plicp.min_matches
@@ -356,17 +380,12 @@ class Dpcr2d:
         if left is not None and left in self.regions and entered:
             self.regions[left].left_at = self.path
         t = time.perf_counter()
-        known = self.regions.get(region)
         reanchored = False
-        if (
-            entered
-            and known is not None
-            and cfg.revisit_search
-            and cfg.second_registration
-            and self.path - known.left_at >= cfg.revisit_path
-        ):
-            reanchored = self._reanchor(known, extras)
-            timings["revisit_ms"] = (time.perf_counter() - t) * 1e3
+        if entered and cfg.revisit_search and cfg.second_registration:
+            maps = self._old_maps()
+            if maps:
+                reanchored = self._reanchor(maps, extras)
+                timings["revisit_ms"] = (time.perf_counter() - t) * 1e3
             if reanchored:  # the region the corrected pose is in
                 region = int(self.division.region_of(self.pose[:2][None])[0])
                 entered = region != left
