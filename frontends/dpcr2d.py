@@ -109,6 +109,7 @@ class Dpcr2dConfig:
     revisit_search: bool = True
     revisit_path: float = 10.0
     revisit_radius: float = 6.0
+    revisit_every: int = 0
     revisit_regions: int = 6
     revisit: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(max_shift=4.0))
     revisit_max_uniqueness: float = 0.8
@@ -381,7 +382,8 @@ class Dpcr2d:
             self.regions[left].left_at = self.path
         t = time.perf_counter()
         reanchored = False
-        if entered and cfg.revisit_search and cfg.second_registration:
+        periodic = cfg.revisit_every > 0 and self.frame % cfg.revisit_every == 0
+        if (entered or periodic) and cfg.revisit_search and cfg.second_registration:
             maps = self._old_maps()
             if maps:
                 reanchored = self._reanchor(maps, extras)
