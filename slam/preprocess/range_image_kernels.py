@@ -124,24 +124,22 @@ def range_image(xyz: np.ndarray, ring: np.ndarray):
     return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def range_image_into(xyz, ring, az, el, rank, order, xyz_s, rng, el_s, az_s, cx, cy):
     """``range_image`` into caller-owned (N,) / (N, 3) buffers (reused from scan to scan:
     fresh arrays cost page faults, a third of the time of a 16-beam scan's SOR); az, el and
-    rank are scratch. Returns (start, lo, hi, spread). The angles (an atan2 per point, most
-    of this kernel's time) in parallel, the sort serial."""
+    rank are scratch. Returns (start, lo, hi, spread). Serial: as a parallel kernel (the
+    atan2 per point in prange) it added a parallel region per scan, and with 2 threads on
+    a loaded machine each region's barrier cost more than it saved."""
     n = len(xyz)
-    for i in prange(n):
+    for i in range(n):
         x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         az[i] = _pseudo_azimuth(x, y)
         el[i] = np.arctan2(z, np.sqrt(x * x + y * y))
     n_rings = ring_ranks_into(ring, el, rank)
     start = sort_rings(rank, az, n_rings, order)
-    lo = np.empty(n_rings)  # loops, not np.full: no parallel region per array
-    hi = np.empty(n_rings)
-    for j in range(n_rings):
-        lo[j] = np.inf
-        hi[j] = -np.inf
+    lo = np.full(n_rings, np.inf)
+    hi = np.full(n_rings, -np.inf)
     dev = 0.0  # sum |elevation - its ring's mean elevation|
     for j in range(n_rings):
         mean = 0.0
@@ -370,7 +368,7 @@ def window_knn(
         sufmin[j] = min(sufmin[j + 1], lo[j])
     rmin = np.empty(bstart[n_rings])
     rmax = np.empty(bstart[n_rings])
-    for j in prange(n_rings):  # each ring's blocks apart
+    for j in range(n_rings):  # serial: a second parallel region costs more than it saves
         a = start[j]
         for ib in range(bstart[j], bstart[j + 1]):
             rmin[ib] = np.inf
@@ -643,27 +641,23 @@ def box_knn(
             out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
 
 
-ROW_CHUNK = 1024  # rows per parallel task of ``gather_rows``
-
-
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def gather_rows(order, idx_s, dist_s, cert_s, visits_s, idx, dist, cert, visits) -> None:
     """Rows in range-image order (row s is input point order[s]) to the input order: a
-    gather (sequential writes) in parallel chunks of ROW_CHUNK rows; the same CPU time as
-    the serial scatter it replaces (strided reads of 168-byte rows: a page per row on
-    column-major scans), split over the threads."""
+    gather (sequential writes); the same CPU time as the scatter it replaces (strided reads
+    of 168-byte rows: a page per row on column-major scans). Serial: in parallel chunks it
+    was slower with 2 threads on a loaded machine (one more barrier per scan)."""
     n, k = dist.shape
     inv = np.empty(n, dtype=np.int64)
-    for s in range(n):  # serial: one parallel region per call (each costs a wake-up)
+    for s in range(n):
         inv[order[s]] = s
-    for c in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
-        for o in range(c * ROW_CHUNK, min(n, (c + 1) * ROW_CHUNK)):
-            s = inv[o]
-            src = dist_s[s]
-            dst = dist[o]
-            for t in range(k):
-                dst[t] = src[t]
-            for t in range(k + 1):
-                idx[o, t] = idx_s[s, t]
-            cert[o] = cert_s[s]
-            visits[o] = visits_s[s]
+    for o in range(n):
+        s = inv[o]
+        src = dist_s[s]
+        dst = dist[o]
+        for t in range(k):
+            dst[t] = src[t]
+        for t in range(k + 1):
+            idx[o, t] = idx_s[s, t]
+        cert[o] = cert_s[s]
+        visits[o] = visits_s[s]

@@ -5,7 +5,7 @@ readable reference), tested in tests/test_sor.py."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 
 @njit(cache=True)
@@ -80,16 +80,16 @@ def exp_neg(x: np.ndarray, scale: float, w: np.ndarray, bits: np.ndarray) -> Non
         w[j] *= two_n[j]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def weighted_sor_kernel_simd(
     dist: np.ndarray, alpha: float, delta: float, max_density_ratio: float
 ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
-    """``weighted_sor_kernel`` with the exp of eq. (4) vectorised (``exp_neg``) in parallel
-    chunks of EXP_CHUNK rows (one parallel region: the rest is serial, each region costs a
-    thread wake-up); dist C-contiguous. Sums go row by row (the earlier single running sum
-    over all N k distances was a 4-cycle add chain per value, 0.4 ms of a 16-beam scan), d
-    in per-chunk partial sums added in chunk order: the same for any thread count; values
-    within 1e-13 of ``weighted_sor_kernel`` (tests/test_sor.py)."""
+    """``weighted_sor_kernel`` with the exp of eq. (4) vectorised (``exp_neg``) in chunks of
+    EXP_CHUNK rows; dist C-contiguous. Sums go row by row (the earlier single running sum
+    over all N k distances was one add chain), d in per-chunk partial sums added in chunk
+    order; values within 1e-13 of ``weighted_sor_kernel`` (tests/test_sor.py). Serial: as a
+    parallel kernel it was slower with 2 threads on a loaded machine (one more barrier per
+    scan than it saved)."""
     n, k = dist.shape
     n_chunks = (n + EXP_CHUNK - 1) // EXP_CHUNK
     d = np.empty(n)
@@ -109,13 +109,13 @@ def weighted_sor_kernel_simd(
     d_avg = max(total / (n * k), 1e-12)  # eq. (5)
     flat = dist.reshape(n * k)
     part = np.empty(n_chunks)  # per chunk: sum of d
-    for c in prange(n_chunks):
+    w = np.empty(EXP_CHUNK * k)
+    bits = np.empty(EXP_CHUNK * k, dtype=np.int64)
+    for c in range(n_chunks):
         a = c * EXP_CHUNK
         b = min(n, a + EXP_CHUNK)
         m = (b - a) * k
-        w = np.empty(m)
-        bits = np.empty(m, dtype=np.int64)
-        exp_neg(flat[a * k : b * k], 1.0 / d_avg, w, bits)  # eq. (4)
+        exp_neg(flat[a * k : b * k], 1.0 / d_avg, w[:m], bits[:m])  # eq. (4)
         sum_d = 0.0
         for i in range(a, b):
             sw = 0.0
