@@ -15,7 +15,7 @@ from slam.loop.consistency import (
     consistent,
     cycle_error,
 )
-from slam.loop.verify import VerifyParams, free_information, verify, yaw_matrix
+from slam.loop.verify import VerifyParams, free_information, tilt_floor, verify, yaw_matrix
 
 RANGE = 20.0  # m, sensor reach in the synthetic scenes
 
@@ -221,3 +221,18 @@ def test_window_zero_confirms_every_loop_at_once(corridor_return):
     lc = LoopConsistency(ConsistencyParams(window=0))
     loop = _loop(8, 90, truth, odo, error=np.array([5.0, 0.0, 0.0]))
     assert lc.add(loop) == [loop] and loop.confirmed
+
+
+def test_tilt_floor_lifts_roll_and_pitch_only():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(6, 6))
+    C = A @ A.T * 1e-5 + np.diag([1e-6, 4e-6, 1e-6, 1e-4, 1e-4, 1e-4])
+    info = np.linalg.inv(C)
+    floor = np.radians(1.0)
+    out = np.linalg.inv(tilt_floor(info, floor))
+    sig, sig0 = np.sqrt(np.diag(out)), np.sqrt(np.diag(C))
+    assert sig[0] == pytest.approx(floor) and sig[1] == pytest.approx(floor)
+    assert np.allclose(sig[2:], sig0[2:])  # yaw and translation as they were
+    corr = out / np.outer(sig, sig)
+    assert np.allclose(corr, C / np.outer(sig0, sig0))  # correlations kept
+    assert np.allclose(tilt_floor(info, np.radians(0.01)), info)  # already weaker: unchanged
