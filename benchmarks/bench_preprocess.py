@@ -15,6 +15,8 @@ does), with the certificate rate and whether the keep-masks are identical.
 range_image and range_image_kernels modules, written to a temporary package so that numba
 caches them) against the working tree on the same scans, interleaved; --threads N sets
 numba's threads (CPU time with 1 thread is the unloaded single-core time on a busy machine).
+--steps gives the CPU time of each step of the SOR with rings (range image, window search,
+box search, row gather, statistics) on the same scans.
 """
 
 from __future__ import annotations
@@ -296,6 +298,57 @@ def scan_rows(repeat: int) -> None:
         )
 
 
+def scan_steps(repeat: int) -> None:
+    """CPU ms per step of ``apply_sor`` with rings (range image, window search, box search,
+    row gather, statistics) on the same scans, min of repeat; --threads 1 gives each step's
+    single-core cost on a busy machine."""
+    import numba
+
+    from slam.preprocess import range_image as ri
+    from slam.preprocess import range_image_kernels as rik
+
+    k = sor_mod.SorConfig().k
+    steps = ("range image", "window", "box", "gather", "statistics")
+    print(f"load average {os.getloadavg()[0]:.2f}; min of {repeat}, CPU ms per step")
+    print(f"  {'scan':20s} {'points':>7s}" + "".join(f" {s:>11s}" for s in steps))
+    for name, xyz, ring in real_scans():
+        n = len(xyz)
+        ring = np.asarray(ring).astype(np.int64)
+        best = dict.fromkeys(steps, np.inf)
+        for _ in range(repeat + 1):
+            buf = ri._BUFFERS
+            order, xyz_s = buf.get("order", n, np.int64), buf.get("xyz", (n, 3))
+            rng, el_s, az_s = buf.get("rng", n), buf.get("el_s", n), buf.get("az_s", n)
+            cx, cy = buf.get("cx", n), buf.get("cy", n)
+            t = [time.process_time()]
+            start, lo, hi, _ = rik.range_image_into(
+                xyz, ring, buf.get("az", n), buf.get("el", n), buf.get("rank", n, np.int64),
+                order, xyz_s, rng, el_s, az_s, cx, cy,
+            )  # fmt: skip
+            in_place = np.count_nonzero(np.abs(np.diff(order)) == 1) > n // 2
+            rows = (np.empty((n, k + 1), np.int64), np.empty((n, k)), np.empty(n, bool))
+            rows = (*rows, np.empty(n, np.int64))
+            out = tuple(np.empty_like(r) for r in rows) if not in_place else rows
+            t.append(time.process_time())
+            with numba.parallel_chunksize(1):
+                rik.window_knn(
+                    xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, ri.MAX_VISITS,
+                    *rows, in_place,
+                )  # fmt: skip
+                t.append(time.process_time())
+                bad = np.flatnonzero(~(rows[2][order] if in_place else rows[2]))
+                rik.box_knn(xyz_s, order, bad, k, rows[0], rows[1], in_place)
+                t.append(time.process_time())
+                if not in_place:
+                    rik.gather_rows(order, *rows, *out)
+            t.append(time.process_time())
+            sor_mod.weighted_sor_terms_fast(out[1])
+            t.append(time.process_time())
+            for j, s in enumerate(steps):
+                best[s] = min(best[s], 1e3 * (t[j + 1] - t[j]))
+        print(f"  {name:20s} {n:7d}" + "".join(f" {best[s]:11.2f}" for s in steps))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
@@ -303,11 +356,15 @@ def main() -> None:
     ap.add_argument("--knn", action="store_true", help="also time the k-NN back ends")
     ap.add_argument("--scans", action="store_true", help="SOR old vs new on 16/64-beam scans")
     ap.add_argument("--threads", type=int, help="numba threads (default: numba's)")
+    ap.add_argument("--steps", action="store_true", help="CPU ms per step of SOR with rings")
     args = ap.parse_args()
     if args.threads:
         import numba
 
         numba.set_num_threads(args.threads)
+    if args.steps:
+        scan_steps(args.repeat)
+        return
     if args.scans and args.before:
         scan_rows_before(args.before, args.repeat)
         return
