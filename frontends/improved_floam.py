@@ -262,9 +262,15 @@ class ImprovedFloam(ScanToMapFrontend):
         src, covs = est.pending
         T = est.pose
         R = T[:3, :3]
-        n_new = self.map.add(
-            src @ R.T + T[:3, 3], np.einsum("ij,njk,lk->nil", R, covs, R), T[:3, 3]
-        )
+        refresh = cfg.map_covariance == "map"
+        if refresh:  # the map computes the new rows' covariances below: no rotated copies
+            rotated = np.broadcast_to(np.eye(3), covs.shape)
+        else:
+            rotated = np.einsum("ij,njk,lk->nil", R, covs, R)
+        n_new = self.map.add(src @ R.T + T[:3, 3], rotated, T[:3, 3])
+        if refresh and n_new and len(self.map) < rc.k_covariance:  # too few points for eq. (1)
+            acc = self.map.last_accepted
+            self.map.covs[len(self.map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs[acc], R)
         if cfg.map_covariance == "map" and n_new and len(self.map) >= rc.k_covariance:
             # eq. (1) on the map: the new points and every map point having one of them among
             # its k neighbours get their covariance (re)computed from the current map
@@ -276,7 +282,9 @@ class ImprovedFloam(ScanToMapFrontend):
             if cfg.map_refresh == "neighbours":
                 # the old points among the new points' neighbours; the new ones (the last
                 # rows) reuse the query above
-                old = np.unique(nb[nb < n_old])
+                mark = np.zeros(n_old, dtype=bool)
+                mark[nb[nb < n_old]] = True
+                old = np.flatnonzero(mark)  # np.unique(nb[nb < n_old]) without its hash pass
                 _, nb_old = self.map.query(pts[old], k=rc.k_covariance)
                 dirty = np.concatenate([old, new])
                 nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
