@@ -226,6 +226,8 @@ class ScanToMapFrontend:
         if self.lost_frames > 0 and self.trusted_stamp is not None:
             # the motion model restarts from the mean motion over the lost stretch
             n = self.lost_frames + 1
+            if self.trusted_stamp is not None and stamp > self.trusted_stamp:
+                self.motion_dt = (float(stamp) - self.trusted_stamp) / n
             rho, phi = se3_log(np.linalg.inv(self.T_trusted) @ est.pose)
             self.T_motion = se3_exp(np.concatenate([phi, rho]) / n)
             self.twist = np.concatenate([phi, rho]) / n
@@ -235,12 +237,31 @@ class ScanToMapFrontend:
         self.trusted_stamp = float(stamp)
         self.n_trusted += 1
 
+    def _motion_to(self, stamp: float) -> np.ndarray:
+        """The constant-velocity motion from the last frame to ``stamp``: ``T_motion`` as it
+        is while the gap is within a third of its own duration (``motion_dt``), else scaled
+        along its twist to the gap (a dropped message, up to 10 frames): at 12 m/s one
+        missing scan otherwise puts the prediction 1.2 m short, every registration from it
+        is rejected as implausible and tracking is lost for a while (urban drive with every
+        7th scan dropped: 29 of 89 frames lost, APE 5 -> 64 cm)."""
+        if self.motion_dt is None or self.last_stamp is None or self.motion_dt <= 0:
+            return self.T_motion
+        ratio = (float(stamp) - self.last_stamp) / self.motion_dt
+        if 2.0 / 3.0 <= ratio <= 1.5 or ratio <= 0:
+            return self.T_motion
+        rho, phi = se3_log(self.T_motion)
+        return se3_exp(np.concatenate([phi, rho]) * min(ratio, 10.0))
+
     # ------------------------------------------------------------------ main loop
     def process(self, scan: Scan) -> Odometry:
         """Estimate T_odom_sensor at ``scan.stamp`` (sweep start) and decide on a keyframe."""
         t0 = time.perf_counter()
         timings: dict[str, float] = {}
-        T_pred = self.T_last @ self.T_motion if self._c.constant_velocity else self.T_last.copy()
+        T_pred = (
+            self.T_last @ self._motion_to(scan.stamp)
+            if self._c.constant_velocity
+            else self.T_last.copy()
+        )
         # 0/1 counters on every frame: summed (or averaged) over a run by the pipeline
         extras: dict = {"n_points": int(len(scan)), "rejected": 0, "recovered": 0}
         extras["reinitialised"] = 0
@@ -315,13 +336,18 @@ class ScanToMapFrontend:
             self.n_keyframes += 1
         # motion model: frame-to-frame motion and its duration; a frame on the prediction
         # (lost) keeps the motion model and the deskew twist as they were
-        if self.last_stamp is not None and scan.stamp > self.last_stamp:
-            self.motion_dt = float(scan.stamp - self.last_stamp)
         if est is not None and extras["recovered"] == 0:
+            dt_before = self.motion_dt
+            if self.last_stamp is not None and scan.stamp > self.last_stamp:
+                self.motion_dt = float(scan.stamp - self.last_stamp)  # T_motion's duration
             self.T_motion = np.linalg.inv(self.T_last) @ pose
             rho, phi = se3_log(self.T_motion)
             a = self._c.deskew_smoothing if self.n_frames > 1 else 0.0
-            self.twist = a * self.twist + (1.0 - a) * np.concatenate([phi, rho])
+            # the smoothed twist spans motion_dt (the deskew period): after a gap it is
+            # rescaled to the new duration before the new motion is mixed in
+            ratio = 1.0 if dt_before is None else self.motion_dt / dt_before
+            old = self.twist if 2.0 / 3.0 <= ratio <= 1.5 else self.twist * ratio
+            self.twist = a * old + (1.0 - a) * np.concatenate([phi, rho])
         self.T_last = pose.copy()
         self.last_stamp = float(scan.stamp)
         self.n_frames += 1
