@@ -76,12 +76,17 @@ def test_motion_bounds_are_physical():
     assert "prediction" in implausibility(ok, 30.0, n, step(), off, DT, cfg)
     # after 1 s without a trusted pose the prediction may have drifted that far
     assert implausibility(ok, 30.0, n, step(dt=1.0), off, 1.0, cfg) is None
-    # a car braking at 1 g leaves the prediction by 5 cm in one 10 Hz frame: believed; a
-    # registration sliding 0.25 m along a corridor in one frame is not
+    # improved FLOAM's floor: a car braking at 1 g leaves the prediction by 5 cm in one
+    # 10 Hz frame: believed; a registration sliding 0.25 m along a corridor is not
+    from frontends.improved_floam import ImprovedFloamConfig
+
+    tight = ImprovedFloamConfig().plausibility
+    assert tight.prediction_floor == 0.1 and cfg.prediction_floor == 0.3
     brake = se3_exp(np.array([0, 0, 0, 0.5 * 9.81 * DT**2, 0, 0]))
-    assert implausibility(ok, 30.0, n, step(v=15.0), brake, DT, cfg) is None
+    assert implausibility(ok, 30.0, n, step(v=15.0), brake, DT, tight) is None
     slide = se3_exp(np.array([0, 0, 0, 0.25, 0, 0]))
-    assert "prediction" in implausibility(ok, 30.0, n, step(), slide, DT, cfg)
+    assert "prediction" in implausibility(ok, 30.0, n, step(), slide, DT, tight)
+    assert implausibility(ok, 30.0, n, step(), slide, DT, cfg) is None  # the common floor
 
 
 def test_no_normal_yet_and_disabled():
