@@ -355,19 +355,18 @@ class Pipeline:
     def _recovered_estimate(self) -> dict[int, Any]:
         """After a failed update the incremental solver's state cannot be trusted: the
         factors it had taken before (``backend.graph()`` / ``values()``, when it keeps
-        them) are optimised again in batch (Levenberg-Marquardt); keyframes without an
+        them) go through the batch back end (Levenberg-Marquardt); keyframes without an
         estimate then keep their odometry pose (``finish``)."""
-        import gtsam
-
         graph, values = getattr(self.backend, "graph", None), getattr(self.backend, "values", None)
         if not (callable(graph) and callable(values)):
             return {}
+        g, v = graph(), values()
+        initial = {k.id: v.atPose3(key(k.id)) for k in self.state.keyframes if v.exists(key(k.id))}
+        batch = plugins.instantiate("slam.backends", {"name": "batch"}, "backend")
         try:
-            v = values()
-            result = gtsam.LevenbergMarquardtOptimizer(graph(), v).optimize()
-            return {k.id: result.atPose3(key(k.id)) for k in self.state.keyframes
-                    if result.exists(key(k.id))}  # fmt: skip
-        except (RuntimeError, ValueError) as exc:
+            batch.update([g.at(i) for i in range(g.size())], initial)
+            return batch.finalize()
+        except SlamError as exc:
             log.warning("batch re-optimisation after the back-end failure failed too (%s): "
                         "the keyframes keep their odometry poses", exc)  # fmt: skip
             return {}
