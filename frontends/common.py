@@ -46,6 +46,12 @@ from slam.types import Odometry, Scan
 log = logging.getLogger(__name__)
 
 
+def _off_duration(ratio: float) -> bool:
+    """Whether a frame gap ``ratio`` times the motion model's duration is a different
+    duration (a dropped message, a burst) rather than stamp jitter: outside [2/3, 3/2]."""
+    return not 2.0 / 3.0 <= ratio <= 1.5
+
+
 @dataclass
 class CommonConfig:
     """Settings every scan-to-map front end has.
@@ -247,7 +253,7 @@ class ScanToMapFrontend:
         if self.motion_dt is None or self.last_stamp is None or self.motion_dt <= 0:
             return self.T_motion
         ratio = (float(stamp) - self.last_stamp) / self.motion_dt
-        if 2.0 / 3.0 <= ratio <= 1.5 or ratio <= 0:
+        if not _off_duration(ratio) or ratio <= 0:
             return self.T_motion
         rho, phi = se3_log(self.T_motion)
         return se3_exp(np.concatenate([phi, rho]) * min(ratio, 10.0))
@@ -346,7 +352,7 @@ class ScanToMapFrontend:
             # the smoothed twist spans motion_dt (the deskew period): after a gap it is
             # rescaled to the new duration before the new motion is mixed in
             ratio = 1.0 if dt_before is None else self.motion_dt / dt_before
-            old = self.twist if 2.0 / 3.0 <= ratio <= 1.5 else self.twist * ratio
+            old = self.twist * ratio if _off_duration(ratio) else self.twist
             self.twist = a * old + (1.0 - a) * np.concatenate([phi, rho])
         self.T_last = pose.copy()
         self.last_stamp = float(scan.stamp)
