@@ -14,6 +14,13 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 RING_BLOCK = 16  # ring points summarised by their range interval (8, 32: within 3 %); 2^n
 H_MARGIN = 1e-12  # haversine slack: float error of the angle bounds (~1e-6 m at 100 m range)
+# Rings whose elevations span more than WIDE_RING (rad) get elevation bounds per azimuth
+# sector (SECTORS over the full turn) and per block: a real sensor's beams sit off the
+# origin, so a ring's elevation seen from the origin moves with range (KITTI-raw HDL-64E:
+# 1.9 deg per ring, every ring overlapping its neighbours), and the ring-wide interval
+# then prunes no ring; a simulated ring spans ~1e-8 rad.
+WIDE_RING = 1e-4
+SECTORS = 256
 
 
 @njit(cache=True)
@@ -300,6 +307,34 @@ def _sort10(bd: np.ndarray, bi: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")
+def _sector(az: float) -> int:
+    """Azimuth sector (0 .. SECTORS - 1) of a pseudo-azimuth in [-2, 2]."""
+    return min(max(int((az + 2.0) * (SECTORS / 4.0)), 0), SECTORS - 1)
+
+
+@njit(cache=True, inline="always")
+def _sector_span(kth2: float, r2: float, cep: float, clo_min: float, cxp: float, cyp: float):
+    """(first sector, number of sectors) holding every azimuth whose ray bound alone (at
+    the lowest cos(elevation) of the scan, clo_min) is <= kth2 m^2, for p with unit azimuth
+    (cxp, cyp), cos(elevation) cep and squared range r2; (0, SECTORS) for the whole turn
+    (half-width 90 deg or more). Points outside the span are farther than sqrt(kth2), so
+    elevation bounds taken over the span alone hold for all points."""
+    if not kth2 < r2 or cep * clo_min <= 0.0:
+        return 0, SECTORS
+    h = 0.5 * (1.0 - np.sqrt(1.0 - kth2 / r2))  # 4 h (1 - h) r2 = kth2, h < 1/2
+    c1 = 2.0 * (h + 2.0 * H_MARGIN) * (1.0 + 1e-9) / (cep * clo_min)  # 1 - cos(half-width)
+    if c1 >= 1.0:
+        return 0, SECTORS
+    c = 1.0 - c1
+    sn = np.sqrt(c1 * (2.0 - c1))
+    a_lo = _pseudo_azimuth(cxp * c + cyp * sn, cyp * c - cxp * sn)  # clockwise edge
+    a_hi = _pseudo_azimuth(cxp * c - cyp * sn, cyp * c + cxp * sn)
+    s0 = _sector(a_lo)
+    s1 = _sector(a_hi)
+    return s0, (s1 - s0) % SECTORS + 1
+
+
+@njit(cache=True, inline="always")
 def _block_bound2(h: float, r2: float, rp: float, rmin: float, rmax: float) -> float:
     """Squared lower bound of |p - q| over the points q of a block: rays at hav(angle) >= h
     from p's ray and ranges in [rmin, rmax] m (law of cosines, minimised over the range)."""
@@ -377,6 +412,48 @@ def window_knn(
             ib = bstart[j] + u // B
             rmin[ib] = min(rmin[ib], rng[a + u])
             rmax[ib] = max(rmax[ib], rng[a + u])
+    # wide rings (WIDE_RING): elevation interval per ring and azimuth sector, its suffix
+    # min / prefix max over the rings, and per block
+    S = SECTORS
+    wide = False
+    clo_min = 1.0
+    for j in range(n_rings):
+        wide = wide or hi[j] - lo[j] > WIDE_RING
+        clo_min = min(clo_min, clo[j])
+    n_sec = n_rings * S if wide else 1
+    n_blk = bstart[n_rings] if wide else 1
+    selo = np.empty(n_sec)
+    sehi = np.empty(n_sec)
+    ssuf = np.empty(n_sec + S)
+    spre = np.empty(n_sec + S)
+    belo = np.empty(n_blk)
+    behi = np.empty(n_blk)
+    if wide:
+        for t in range(n_rings * S):
+            selo[t] = np.inf
+            sehi[t] = -np.inf
+        for j in range(n_rings):
+            a = start[j]
+            for ib in range(bstart[j], bstart[j + 1]):
+                belo[ib] = np.inf
+                behi[ib] = -np.inf
+            for u in range(start[j + 1] - a):
+                e = el[a + u]
+                t = j * S + _sector(az[a + u])
+                selo[t] = min(selo[t], e)
+                sehi[t] = max(sehi[t], e)
+                ib = bstart[j] + u // B
+                belo[ib] = min(belo[ib], e)
+                behi[ib] = max(behi[ib], e)
+        for t in range(S):
+            ssuf[n_rings * S + t] = np.inf
+            spre[t] = -np.inf
+        for j in range(n_rings - 1, -1, -1):
+            for t in range(S):
+                ssuf[j * S + t] = min(ssuf[(j + 1) * S + t], selo[j * S + t])
+        for j in range(n_rings):
+            for t in range(S):
+                spre[(j + 1) * S + t] = max(spre[j * S + t], sehi[j * S + t])
     for g in prange(n_rings):  # rings are independent: one thread per ring at a time
         bd = np.empty(k)
         bi = np.empty(k, dtype=np.int64)
@@ -400,6 +477,9 @@ def window_knn(
             up_open = True
             down_open = True
             m = 0
+            span_kth2 = -1.0  # the kth2 the sector span was computed for (-1: none yet)
+            s0 = 0
+            ns = S
             while (up_open or down_open) and visits <= max_visits:
                 for side in range(2):
                     if side == 0:
@@ -418,7 +498,22 @@ def window_knn(
                             down_open = False
                             continue
                         de = ep - prefmax[j + 1]
-                    if m > 0 and de > 0.0 and _ray_bound2(_hav_lower(de), r2) > kth2:
+                    beyond = m > 0 and de > 0.0 and _ray_bound2(_hav_lower(de), r2) > kth2
+                    if m > 0 and wide and not beyond:
+                        if span_kth2 != kth2:
+                            s0, ns = _sector_span(kth2, r2, cep, clo_min, cx[s], cy[s])
+                            span_kth2 = kth2
+                        if ns < S:  # the same over the azimuth sectors in reach
+                            de = np.inf
+                            for t in range(s0, s0 + ns):
+                                tt = t - S if t >= S else t
+                                if side == 0:
+                                    de = min(de, ssuf[j * S + tt] - ep)
+                                else:
+                                    de = min(de, ep - spre[(j + 1) * S + tt])
+                            de = min(de, np.pi)
+                            beyond = de > 0.0 and _ray_bound2(_hav_lower(de), r2) > kth2
+                    if beyond:
                         # every ring beyond is at least this elevation gap away
                         if side == 0:
                             up_open = False
@@ -463,6 +558,20 @@ def window_knn(
                         he = _hav_lower(max(lo[j] - ep, ep - hi[j], 0.0))
                         if _ray_bound2(he, r2) > kth2:
                             continue  # the whole ring is too far in elevation
+                        if wide and hi[j] - lo[j] > WIDE_RING:
+                            if span_kth2 != kth2:
+                                s0, ns = _sector_span(kth2, r2, cep, clo_min, cx[s], cy[s])
+                                span_kth2 = kth2
+                            if ns < S:  # its elevations over the sectors in reach
+                                elo = np.inf
+                                ehi = -np.inf
+                                for t in range(s0, s0 + ns):
+                                    tt = j * S + (t - S if t >= S else t)
+                                    elo = min(elo, selo[tt])
+                                    ehi = max(ehi, sehi[tt])
+                                he = _hav_lower(min(max(elo - ep, ep - ehi, 0.0), np.pi))
+                                if _ray_bound2(he, r2) > kth2:
+                                    continue
                         c = cursor[j]
                         if c < 0:  # first point of ring j at azimuth >= azp
                             lo_i, hi_i = a, a + cnt
@@ -504,8 +613,13 @@ def window_knn(
                                     b1 = min(cnt, b0 + B) - 1
                                     qf = a + (b1 if step > 0 else b0)
                                     far = 1.0 - (cx[qf] * cxp + cy[qf] * cyp)
-                                    hb = he + coef * min(one_m_dot, far)
                                     ib = ib0 + b0 // B
+                                    if wide:
+                                        de_b = max(belo[ib] - ep, ep - behi[ib], 0.0)
+                                        hb = max(he, _hav_lower(de_b))
+                                    else:
+                                        hb = he
+                                    hb += coef * min(one_m_dot, far)
                                     if _block_bound2(hb, r2, rp, rmin[ib], rmax[ib]) > kth2:
                                         n_b = min(b1 - b0 + 1, budget)
                                         budget -= n_b
