@@ -84,6 +84,31 @@ def test_walls_never_win_in_a_narrow_corridor():
     assert abs(plane.d - 0.5) < 0.01 and plane.tilt_deg < 0.3
 
 
+def test_ring_lines_on_corridor_walls_are_not_the_floor():
+    """A VLP-16 0.88 m above the floor of a 3.5 m corridor (building scene, frame 88): the
+    lowest beam's ring traces one level line at 0.41 m along both walls, with more points
+    than the floor the beams reach between them. The plain RANSAC takes that ledge
+    (d = 0.47 m: every ground residual of the frame 0.4 m off, the registration rejected);
+    the descent finds the floor below it."""
+    rng = np.random.default_rng(4)
+    floor = np.column_stack(
+        [rng.uniform(3, 30, 700), rng.uniform(-1.7, 1.7, 700), rng.normal(-0.88, 0.01, 700)]
+    )
+    ring = np.column_stack(
+        [
+            rng.uniform(-30, 30, 2400),
+            np.where(rng.random(2400) < 0.5, -1.75, 1.75),
+            rng.normal(-0.47, 0.01, 2400),
+        ]
+    )
+    xyz = np.vstack([floor, ring])
+    plain = fit_ground(xyz, RansacGroundConfig(max_descents=0), seed=0)
+    assert abs(plain.d - 0.47) < 0.02  # the ledge: what the plain RANSAC finds
+    plane = fit_ground(xyz, seed=0)
+    assert abs(plane.d - 0.88) < 0.01 and plane.tilt_deg < 0.3
+    assert plane.inliers[:700].mean() > 0.95 and not plane.inliers[700:].any()
+
+
 def test_no_ground_raises_and_config_is_checked():
     rng = np.random.default_rng(0)
     above = rng.uniform([-10, -10, 0.5], [10, 10, 3], size=(2000, 3))

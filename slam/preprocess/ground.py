@@ -30,7 +30,11 @@ class RansacGroundConfig:
     within this horizontal distance. max_candidates: candidates subsampled for the score
     (the refit uses all). min_inliers: fewer -> no ground (InputError). refits:
     re-selections of the inliers with the refined plane, the band shrinking to three robust
-    sigmas of the ground's residuals but not below min_band (m)."""
+    sigmas of the ground's residuals but not below min_band (m). max_descents: how many
+    times the plane may be replaced by a level plane fitted to the candidates more than
+    ``inlier_band`` below it, when at least min_below_fraction x its inliers (and
+    min_inliers) lie there and support it as well (the ground is the lowest supported
+    level surface; 0 = the paper's plain RANSAC)."""
 
     iterations: int = 100
     inlier_band: float = 0.08
@@ -41,6 +45,8 @@ class RansacGroundConfig:
     min_inliers: int = 50
     refits: int = 3
     min_band: float = 0.02
+    max_descents: int = 2
+    min_below_fraction: float = 0.2
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
@@ -107,6 +113,50 @@ def refit_plane(xyz: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(-n @ c)
 
 
+def _best_sample(
+    pts: np.ndarray, up: np.ndarray, cfg: RansacGroundConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, float] | None:
+    """RANSAC steps (1)-(3): the level three-point plane (normal towards ``up``) with the
+    most points of ``pts`` within ``inlier_band`` (scored on at most ``max_candidates``
+    of them); None when no sample is level."""
+    score_pts = pts
+    if len(pts) > cfg.max_candidates:
+        score_pts = pts[rng.choice(len(pts), cfg.max_candidates, replace=False)]
+    triples = pts[rng.integers(0, len(pts), size=(cfg.iterations, 3))]
+    normals, ds = plane_from_points(triples)
+    flip = normals @ up < 0
+    normals[flip] *= -1.0
+    ds[flip] *= -1.0
+    level = normals @ up >= np.cos(np.radians(cfg.max_tilt_deg))
+    if not level.any():
+        return None
+    normals, ds = normals[level], ds[level]
+    dist = np.abs(score_pts @ normals.T + ds)  # (candidates, samples)
+    score = (dist <= cfg.inlier_band).sum(axis=0)  # eq. (6)
+    best = int(np.argmax(score))
+    return normals[best], float(ds[best])
+
+
+def _refine(
+    cand: np.ndarray, n: np.ndarray, d: float, up: np.ndarray, cfg: RansacGroundConfig
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Step (4): least-squares refits of the plane (n, d) through its inliers among
+    ``cand``; returns the plane and its inlier mask over ``cand``."""
+    band = cfg.inlier_band
+    inl = np.abs(cand @ n + d) <= band
+    for _ in range(max(cfg.refits, 1)):
+        if inl.sum() < cfg.min_inliers:
+            break
+        n, d = refit_plane(cand[inl], up)  # eq. (7)
+        res = np.abs(cand @ n + d)
+        # the band shrinks to the noise of the ground (3 robust sigmas), so that the feet
+        # of walls and kerbs within the coarse band stop tilting the refit
+        sigma = 1.4826 * float(np.median(res[res <= band]))
+        band = float(np.clip(3.0 * sigma, cfg.min_band, band))
+        inl = res <= band
+    return n, d, inl
+
+
 def fit_ground(
     xyz: np.ndarray, cfg: RansacGroundConfig | None = None, seed: int = 0
 ) -> GroundPlane:
@@ -132,37 +182,28 @@ def fit_ground(
         )
     rng = np.random.default_rng(seed)
     cand = xyz[cand_idx]
-    score_pts = cand
-    if len(cand) > cfg.max_candidates:
-        score_pts = cand[rng.choice(len(cand), cfg.max_candidates, replace=False)]
-    triples = cand[rng.integers(0, len(cand), size=(cfg.iterations, 3))]
-    normals, ds = plane_from_points(triples)
-    flip = normals @ up < 0
-    normals[flip] *= -1.0
-    ds[flip] *= -1.0
-    level = normals @ up >= np.cos(np.radians(cfg.max_tilt_deg))
-    if not level.any():
+    best = _best_sample(cand, up, cfg, rng)
+    if best is None:
         raise InputError(
             f"no ground: none of {cfg.iterations} RANSAC samples is within "
             f"{cfg.max_tilt_deg} deg of level; check ground.up"
         )
-    normals, ds = normals[level], ds[level]
-    dist = np.abs(score_pts @ normals.T + ds)  # (candidates, samples)
-    score = (dist <= cfg.inlier_band).sum(axis=0)  # eq. (6)
-    best = int(np.argmax(score))
-    n, d = normals[best], float(ds[best])
-    band = cfg.inlier_band
-    inl = np.abs(cand @ n + d) <= band
-    for _ in range(max(cfg.refits, 1)):
-        if inl.sum() < cfg.min_inliers:
+    n, d, inl = _refine(cand, *best, up, cfg)
+    # the ground has nothing under it: a level plane with a supported level plane below it
+    # is a ledge (in a corridor the rings of the low beams trace level lines at one height
+    # along both walls, often more points than the floor between them): descend to it
+    for _ in range(cfg.max_descents):
+        below = cand @ n + d < -cfg.inlier_band
+        need = max(cfg.min_inliers, cfg.min_below_fraction * int(inl.sum()))
+        if below.sum() < need:
             break
-        n, d = refit_plane(cand[inl], up)  # eq. (7)
-        res = np.abs(cand @ n + d)
-        # the band shrinks to the noise of the ground (3 robust sigmas), so that the feet
-        # of walls and kerbs within the coarse band stop tilting the refit
-        sigma = 1.4826 * float(np.median(res[res <= band]))
-        band = float(np.clip(3.0 * sigma, cfg.min_band, band))
-        inl = res <= band
+        lower = _best_sample(cand[below], up, cfg, rng)
+        if lower is None:
+            break
+        n2, d2, inl2 = _refine(cand, *lower, up, cfg)
+        if inl2.sum() < need or n2 @ up < np.cos(np.radians(cfg.max_tilt_deg)):
+            break
+        n, d, inl = n2, d2, inl2
     if inl.sum() < cfg.min_inliers or n @ up < np.cos(np.radians(cfg.max_tilt_deg)) or d <= 0:
         raise InputError(
             f"no ground: the best plane has {int(inl.sum())} inliers (need {cfg.min_inliers}) "
