@@ -307,6 +307,19 @@ def _sort10(bd: np.ndarray, bi: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always")
+def _stop_dot(kth2: float, r2: float, he: float, coef: float) -> float:
+    """The 1 - dot(azimuth of p, of q) beyond which ``_ray_bound2(he + coef (1 - dot), r2)``
+    exceeds kth2 (inf: nowhere): he + coef (1 - dot) > h + H_MARGIN with 4 h (1 - h) r2 =
+    kth2, h < 1/2 (in the form without cancellation, widened by 1e-12 relative). One
+    comparison per point walked instead of the bound; recomputed when kth2 shrinks."""
+    if not kth2 < r2 or coef <= 0.0:
+        return np.inf
+    x = kth2 / r2
+    h = 0.5 * x / (1.0 + np.sqrt(1.0 - x))
+    return max(h * (1.0 + 1e-12) + H_MARGIN - he, 0.0) / coef
+
+
+@njit(cache=True, inline="always")
 def _sector(az: float) -> int:
     """Azimuth sector (0 .. SECTORS - 1) of a pseudo-azimuth in [-2, 2]."""
     return min(max(int((az + 2.0) * (SECTORS / 4.0)), 0), SECTORS - 1)
@@ -591,6 +604,7 @@ def window_knn(
                         u_left = u_right - 1
                     # hav(angle to q) >= he + coef (1 - dot(azimuth of p, of q))
                     coef = 0.5 * cep * clo[j]
+                    stop = _stop_dot(kth2, r2, he, coef)
                     ib0 = bstart[j]
                     for direction in range(2):
                         step = 1 if direction == 0 else -1
@@ -603,7 +617,7 @@ def window_knn(
                             q = a + u
                             if kth2 < np.inf:
                                 one_m_dot = 1.0 - (cx[q] * cxp + cy[q] * cyp)
-                                if _ray_bound2(he + coef * one_m_dot, r2) > kth2:
+                                if one_m_dot > stop:
                                     break  # the frontier bounds everything beyond it
                                 # entering a block at its edge: skip it whole when its range
                                 # interval and angle keep it beyond the k-th distance
@@ -637,6 +651,7 @@ def window_knn(
                             if d2 < kth2:
                                 _insert(bd, bi, d2, q)
                                 kth2 = bd[k - 1]
+                                stop = _stop_dot(kth2, r2, he, coef)
                 m += 1
             # rows in input order when the input is stored ring by ring (near-sequential
             # writes), else in sorted order (scattered writes cost a third of the kernel on
