@@ -139,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--real", nargs="*", default=["fr079", "intel"])
     ap.add_argument("--skip-width", action="store_true")
     ap.add_argument("--skip-compare", action="store_true")
+    ap.add_argument("--skip-sim", action="store_true", help="Table 2 on the real logs only")
     args = ap.parse_args(argv)
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -169,7 +170,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     if not args.skip_compare:
         rows = []
-        inputs = [(args.plan, log, gt, None)]
+        inputs = [] if args.skip_sim else [(args.plan, log, gt, None)]
         frames = args.real_frames or None  # 0: the whole log
         inputs += [(n, DATA / f"{n}.clf.bz2", None, frames) for n in args.real]
         for name, path, truth, frames in inputs:

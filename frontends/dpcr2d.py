@@ -86,6 +86,14 @@ class Dpcr2dConfig:
     robot and the submap then move onto the region's map (re-anchored), so that the scans
     that follow draw its walls where they already are. A correction within
     ``revisit_min_m`` and ``revisit_min_deg`` is left to the second registration.
+
+    graph_feedback: after each region-graph optimisation (the pipeline's
+    ``on_graph_update``) the robot, its submap and every regional map move to where the
+    graph put them: a regional map is placed by the optimised pose of the keyframe that
+    opened it (a per-region offset, the grid itself is never resampled), the robot by that
+    of the last keyframe; scans that follow are drawn, and registered, in the graph's
+    frame. The reported odometry stays continuous (the moves are not in it: the graph made
+    them).
     """
 
     submap_scans: int = 20
@@ -117,6 +125,7 @@ class Dpcr2dConfig:
     revisit_match_distance: float = 0.1
     revisit_min_m: float = 0.15
     revisit_min_deg: float = 2.0
+    graph_feedback: bool = True
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
@@ -131,6 +140,16 @@ class _Region:
     ref: LineReference | None = None
     refreshed_at: int = -(10**9)
     left_at: float | None = None  # path length (m) when the robot last left the region
+    owner: int = 0  # the keyframe that opened the region (its pose places the grid)
+    # where the grid lies in the current map frame: map = offset o grid (x, y, theta)
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def to_grid(self, pose: np.ndarray) -> np.ndarray:
+        return compose2d(inverse2d(self.offset), pose)
+
+    def in_map(self, correction: np.ndarray) -> np.ndarray:
+        """A correction of the grid's frame expressed in the map frame."""
+        return compose2d(compose2d(self.offset, correction), inverse2d(self.offset))
 
 
 class Dpcr2d:
@@ -160,6 +179,14 @@ class Dpcr2d:
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
         self._odom_err2 = np.array([0.05**2, np.radians(2.0) ** 2])
+        # graph feedback: the map frame (self.pose, the window, the regions' offsets) vs
+        # the reported odometry frame: map = feedback o reported; kf_map[k] the map pose of
+        # keyframe k when it was emitted (the frame its region's grid was drawn in)
+        self.feedback = np.zeros(3)
+        self.kf_id = -1
+        self.kf_map: list[np.ndarray] = []
+        self._hooked = False  # the pipeline calls on_graph_update (re-anchors are loops)
+        self._moved_since_kf = np.zeros(3)  # map-frame moves of on_graph_update since then
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -168,6 +195,41 @@ class Dpcr2d:
             "submap": self.submap.nbytes,
             "regional_maps": sum(r.grid.nbytes for r in self.regions.values()),
         }
+
+    def region_placements(self, estimates: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Each regional map's placement (x, y, theta) in the graph's frame, from the
+        optimised poses (4x4, by keyframe id) of the keyframes that opened them: the
+        corrections ``global_grid`` takes."""
+        out = {}
+        for region_id, region in self.regions.items():
+            T = estimates.get(region.owner)
+            if T is not None and region.owner < len(self.kf_map):
+                drawn = self.kf_map[region.owner]
+                out[region_id] = compose2d(matrix_to_pose2(T), inverse2d(drawn))
+        return out
+
+    def on_graph_update(self, view) -> None:
+        """After a region-graph optimisation (``cfg.graph_feedback``): move the robot, the
+        submap and the regional maps (their offsets) to the optimised poses."""
+        if not self.cfg.graph_feedback or len(view.keyframes) != self.kf_id + 1:
+            return
+        self._hooked = True
+        for region in self.regions.values():
+            if region.owner < len(self.kf_map):
+                T = matrix_to_pose2(view.estimate(region.owner))
+                region.offset = compose2d(T, inverse2d(self.kf_map[region.owner]))
+        # the map frame: the last keyframe's correction (less what earlier calls since its
+        # emission applied already)
+        delta = compose2d(
+            compose2d(matrix_to_pose2(view.estimate(self.kf_id)), inverse2d(self.kf_map[-1])),
+            inverse2d(self._moved_since_kf),
+        )
+        self._moved_since_kf = compose2d(delta, self._moved_since_kf)
+        self.feedback = compose2d(delta, self.feedback)
+        if np.linalg.norm(delta[:2]) > 1e-6 or abs(delta[2]) > 1e-7:
+            self._move(delta)
+        else:
+            self.pose = compose2d(delta, self.pose)
 
     def global_grid(self, corrections: dict[int, np.ndarray] | None = None) -> OccupancyGrid:
         """The global map: the regional maps fused probabilistically (log-odds added, paper
@@ -242,12 +304,13 @@ class Dpcr2d:
         target = self.submap.obstacle_points()
         if ref is None or len(target) < self.cfg.min_points:
             return
+        target = transform2d(inverse2d(region.offset), target)  # into the grid's frame
         res = plicp(target, ref, np.zeros(3), self.cfg.regional_plicp)
         self.counts["second_registrations"] += 1
         if not self._plausible(res, np.zeros(3)):
             self.counts["second_rejected"] += 1
             return
-        self._move(res.pose)  # world-frame correction of the submap
+        self._move(region.in_map(res.pose))  # map-frame correction of the submap
         timings["second_ms"] = (time.perf_counter() - t) * 1e3
 
     def _move(self, delta: np.ndarray) -> None:
@@ -267,7 +330,8 @@ class Dpcr2d:
         for region_id, region in self.regions.items():
             if region.left_at is None or self.path - region.left_at < cfg.revisit_path:
                 continue
-            d = float(np.linalg.norm(self.division.centre(region_id) - self.pose[:2]))
+            centre = transform2d(region.offset, self.division.centre(region_id)[None])[0]
+            d = float(np.linalg.norm(centre - self.pose[:2]))
             if d <= cfg.revisit_radius:
                 near.append((d, region_id))
         return [self.regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
@@ -278,7 +342,9 @@ class Dpcr2d:
         cfg = self.cfg
         target = self.submap.obstacle_points()
         hits = [m.grid.obstacle_hits() for m in maps]
-        reference = np.vstack([h[0] for h in hits])
+        reference = np.vstack(
+            [transform2d(m.offset, h[0]) for m, h in zip(maps, hits, strict=True)]
+        )
         if len(target) < cfg.min_points or len(reference) < cfg.min_points:
             return False
         weights = np.concatenate([h[1] for h in hits])
@@ -312,16 +378,25 @@ class Dpcr2d:
         extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res.pose[:2])),
                       reanchor_deg=float(np.degrees(res.pose[2])))  # fmt: skip
         self._move(res.pose)
+        if self._hooked and maps[0].owner < len(self.kf_map):
+            # a loop, not odometry: the reported pose does not jump; the keyframe of this
+            # frame carries the match as a constraint on the nearest map's keyframe
+            self.feedback = compose2d(res.pose, self.feedback)
+            placed = compose2d(maps[0].offset, self.kf_map[maps[0].owner])
+            z = compose2d(inverse2d(placed), self.pose)
+            extras.update(anchor_kf=maps[0].owner, anchor_x=float(z[0]), anchor_y=float(z[1]),
+                          anchor_theta=float(z[2]))  # fmt: skip
         return True
 
     def _fuse_region(self, pts: np.ndarray, pose: np.ndarray) -> None:
         region = self.regions.get(self.region)
         if region is None:  # entering a new region: its map starts from the submap
-            region = _Region(OccupancyGrid(self.cfg.region_grid))
+            region = _Region(OccupancyGrid(self.cfg.region_grid), owner=max(self.kf_id, 0))
             for p, q in self.window:
                 region.grid.add_scan(transform2d(q, p), q[:2])
             self.regions[self.region] = region
             return
+        pose = region.to_grid(pose)
         region.grid.add_scan(transform2d(pose, pts), pose[:2])
 
     # ------------------------------------------------------------------ contract
@@ -392,6 +467,9 @@ class Dpcr2d:
                 region = int(self.division.region_of(self.pose[:2][None])[0])
                 entered = region != left
         self.region = region
+        is_kf = self.frame == 0 or entered or "anchor_kf" in extras
+        if is_kf:
+            self.kf_id += 1
         if len(pts) >= cfg.min_points:
             self._fuse_region(pts, self.pose)
         due = self.frame % cfg.second_every == 0 or (entered and region in self.regions)
@@ -399,17 +477,21 @@ class Dpcr2d:
             self._second_registration(timings)
         timings["region_ms"] = (time.perf_counter() - t) * 1e3
 
-        is_kf = self.frame == 0 or entered
-        T = pose2_to_matrix(self.pose)
+        reported = compose2d(inverse2d(self.feedback), self.pose)
+        T = pose2_to_matrix(reported)
         relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
         cloud = None
         if is_kf:
+            left = left if entered else None  # a re-anchor inside a region: no region event
             extras.update(region=region, region_left=-1 if left is None else left)
             if left is not None and left in self.regions:
-                obs = self.regions[left].grid.obstacles()
+                left_region = self.regions[left]
+                obs = transform2d(left_region.offset, left_region.grid.obstacles())
                 local = transform2d(inverse2d(self.pose), obs)
                 cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
-            self.pose_kf = self.pose.copy()
+            self.pose_kf = reported
+            self.kf_map.append(self.pose.copy())
+            self._moved_since_kf = np.zeros(3)
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1

@@ -12,7 +12,12 @@ from slam.types import Odometry, Scan
 
 @runtime_checkable
 class Frontend(Protocol):
-    """Turns scans into odometry. Never imports gtsam."""
+    """Turns scans into odometry. Never imports gtsam.
+
+    Optional: ``on_graph_update(view)`` (``slam.factors.GraphView``), called by the
+    pipeline after each back-end update of a new keyframe; a front end that keeps its own
+    maps moves them to the optimised poses there. Without it nothing is called.
+    """
 
     def process(self, scan: Scan) -> Odometry: ...
 

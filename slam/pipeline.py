@@ -341,6 +341,18 @@ class Pipeline:
         st.backend_seconds.append(dt)
         self._estimate_cache = {}
         self._pending = None
+        self._graph_feedback()
+
+    def _graph_feedback(self) -> None:
+        """The front end's optional ``on_graph_update(view)``, called after each back-end
+        update of a keyframe with the graph view (``view.estimate`` gives the optimised
+        poses): a front end that keeps maps (``dpcr2d``) moves them, and its pose, to where
+        the graph put them. Front ends without the method are not touched."""
+        hook = getattr(self.frontend, "on_graph_update", None)
+        if callable(hook):
+            t0, c0 = time.perf_counter(), time.process_time()
+            hook(self.view)
+            self._timed("frontend_feedback", time.perf_counter() - t0, time.process_time() - c0)
 
     def _backend_update(self, factors: list[Any], initial: dict[int, Any], loop: bool) -> None:
         """``backend.update``; a failure stops the run (``BackendError``) with what it has."""

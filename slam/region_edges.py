@@ -61,7 +61,9 @@ class RegionEdgeConfig(FactorConfig):
     (at most ``wide_per_keyframe`` candidates per keyframe, nearest centres first),
     accepted when its second peak / best <= ``wide_max_uniqueness`` and its correction
     of the odometry is within ``wide_gate_m`` + gate_fraction * path and
-    ``wide_gate_deg``."""
+    ``wide_gate_deg``; anchor_sigma_m / anchor_sigma_deg: the noise of a front end's
+    re-anchor (its keyframe's ``anchor_kf`` / ``anchor_x`` / ``anchor_y`` /
+    ``anchor_theta`` extras: its pose on the map of that earlier keyframe), an edge too."""
 
     region_width: float = 4.0
     alpha: float = 1.5
@@ -80,6 +82,8 @@ class RegionEdgeConfig(FactorConfig):
     wide_max_uniqueness: float = 0.8
     wide_gate_m: float = 3.0
     wide_gate_deg: float = 25.0
+    anchor_sigma_m: float = 0.05
+    anchor_sigma_deg: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -143,10 +147,11 @@ class RegionEdgePlugin:
         if kf.id > 0:
             step = float(np.linalg.norm(np.asarray(kf.relative)[:2, 3]))
             self._path.append(self._path[-1] + step)
+        anchors = self._anchor(kf)
         region = int(kf.extras.get("region_left", -1))
         cloud = graph.cloud(kf.id)
         if region < 0 or len(cloud) < 20:
-            return []
+            return anchors
         self._regions[kf.id] = region
         centre = self.division.centre(region)
         T_k = graph.estimate(kf.id)
@@ -202,7 +207,23 @@ class RegionEdgePlugin:
                     key(j), key(kf.id), pose3(pose2_to_matrix(res.pose)), noise
                 )
             )
-        return factors
+        return anchors + factors
+
+    def _anchor(self, kf: Keyframe) -> list[gtsam.BetweenFactorPose3]:
+        """The edge of a front-end re-anchor (``dpcr2d``: the submap matched, by the wide
+        search, on the old maps): keyframe ``anchor_kf`` -> this one."""
+        cfg = self.config
+        j = int(kf.extras.get("anchor_kf", -1))
+        if not 0 <= j < kf.id:
+            return []
+        z = np.array([kf.extras["anchor_x"], kf.extras["anchor_y"], kf.extras["anchor_theta"]])
+        s_t, s_r = cfg.anchor_sigma_m, np.radians(cfg.anchor_sigma_deg)
+        info = np.diag([1e6, 1e6, 1.0 / s_r**2, 1.0 / s_t**2, 1.0 / s_t**2, 1e6])
+        noise = robust_noise(gtsam.noiseModel.Gaussian.Information(info), cfg.robust,
+                             cfg.robust_param)  # fmt: skip
+        region = int(kf.extras.get("region", -1))
+        self.events.append(RegionEdge(kf.id, j, region, -1, 1.0, 0.0, True, "ok (re-anchor)"))
+        return [gtsam.BetweenFactorPose3(key(j), key(kf.id), pose3(pose2_to_matrix(z)), noise)]
 
     def _reject(self, rate: float, corr: np.ndarray, path: float, wide: bool) -> str:
         """Why an edge of this match rate and correction of the odometry (x, y, theta),

@@ -79,13 +79,17 @@ def test_dpcr_front_end_tracks_the_rooms_loop(rooms_log):
 def test_region_edges_cut_the_drift_of_wheel_odometry(rooms_log, tmp_path):
     """Registration switched off (the maps follow the poor wheel odometry): the
     region graph, linking regional maps of revisited regions, cuts the APE (measured:
-    RMSE 0.155 -> 0.108 m, median 0.112 -> 0.055 m)."""
+    RMSE 0.155 -> 0.108 m, median 0.112 -> 0.055 m). The graph's feedback into the
+    front end is off here: with no registration nothing measures the robot against the
+    moved maps (with it on: RMSE 0.144 m, median 0.057 m)."""
     log, gt, _ = rooms_log
     off = [
         "--set",
         "frontend.first_registration=false",
         "--set",
         "frontend.second_registration=false",
+        "--set",
+        "frontend.graph_feedback=false",
     ]
     base = ["run", str(log), "--config", "dpcr2d", "--gt", str(gt), "--quiet", *off]
     assert (

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frontends.dpcr2d import Dpcr2d, Dpcr2dConfig
-from slam.mapping.grid2d import compose2d, inverse2d, wrap
+from frontends.dpcr2d import Dpcr2d, Dpcr2dConfig, matrix_to_pose2
+from slam.mapping.grid2d import compose2d, inverse2d, pose2_to_matrix, wrap
 from slam.sim.floorplan2d import simulate2d
 from slam.types import Scan
 
@@ -53,3 +53,48 @@ def test_a_drifted_revisit_is_moved_back_onto_the_regional_map(lap):
     assert err[first:].max() < 0.05, (first, err[first:].max())
     dth = np.degrees(np.abs(wrap(poses[first:, 2] - lap.poses[first:, 2])))
     assert dth.max() < 0.3
+
+
+class _View:
+    """The pipeline's graph view as the front end sees it: keyframes and estimates."""
+
+    def __init__(self, n: int, estimate):
+        self.keyframes = list(range(n))
+        self.estimate = estimate
+
+
+def test_graph_feedback_moves_the_robot_and_its_maps_not_the_odometry(lap):
+    """The region graph moves the whole map by C (0.4 m, 6 deg): after the hook the robot
+    and the regional maps are there (the maps by per-region offsets), the scans that
+    follow are tracked and registered in that frame (the second registration does not
+    pull the robot back onto the unmoved grids), and the reported odometry stays
+    continuous."""
+    C = np.array([0.4, -0.2, np.radians(6.0)])
+    fe = Dpcr2d()
+    T0 = lap.poses[0]
+    reported, inside = [], []
+    for k in range(200):
+        pts = lap.points(k)
+        scan = Scan(float(lap.stamps[k]), np.column_stack([pts, np.zeros(len(pts))]),
+                    odom=lap.poses[k].copy())  # fmt: skip
+        odo = fe.process(scan)
+        if k == 100:  # the graph moves every keyframe so far by C
+            assert odo.is_keyframe or fe.kf_id >= 1
+            view = _View(fe.kf_id + 1, lambda i: pose2_to_matrix(compose2d(C, fe.kf_map[i])))
+            before = fe.pose.copy()
+            fe.on_graph_update(view)
+            assert np.allclose(fe.pose, compose2d(C, before), atol=1e-9)
+            fe.on_graph_update(view)  # the same estimate again: nothing more moves
+            assert np.allclose(fe.pose, compose2d(C, before), atol=1e-9)
+            assert all(np.allclose(r.offset, C) for r in fe.regions.values())
+        reported.append(compose2d(T0, matrix_to_pose2(odo.pose)))
+        inside.append(compose2d(compose2d(T0, inverse2d(C)), fe.pose))
+    reported, inside = np.array(reported), np.array(inside)
+    truth = lap.poses[:200]
+    err_reported = np.linalg.norm(reported[:, :2] - truth[:, :2], axis=1)
+    err_inside = np.linalg.norm(inside[101:, :2] - truth[101:, :2], axis=1)
+    assert err_reported.max() < 0.05, err_reported.max()  # no jump of C in the odometry
+    assert err_inside.max() < 0.05, err_inside.max()  # tracked in the moved frame
+    dth = np.degrees(np.abs(wrap(inside[101:, 2] - truth[101:, 2])))
+    assert dth.max() < 0.3
+    assert fe.counts["second_registrations"] > 10  # on the moved (offset) regional maps

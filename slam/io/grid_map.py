@@ -84,7 +84,12 @@ def write_region_map(pipeline, out: str | Path) -> list[Path]:
     frontend = pipeline.frontend
     if not hasattr(frontend, "global_grid") or not pipeline.state.keyframes:
         return []
-    grid = frontend.global_grid(region_corrections(pipeline))
+    placements = getattr(frontend, "region_placements", None)
+    if callable(placements):  # each map placed by the keyframe that opened it
+        corrections = placements(pipeline.state.estimates)
+    else:
+        corrections = region_corrections(pipeline)
+    grid = frontend.global_grid(corrections)
     if grid.data.size == 0:
         return []
     return write_map_server(grid, out)
