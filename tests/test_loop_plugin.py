@@ -664,3 +664,42 @@ def test_verify_pool_without_a_worker_verifies_in_process_alike(monkeypatch):
     assert res.accepted and ref.accepted and ms >= 0.0
     np.testing.assert_array_equal(res.T_target_source, ref.T_target_source)
     pool.close()
+
+
+UNGUARDED_SCRIPT = """
+import numpy as np
+from slam.loop import background
+from slam.loop.search import Candidate
+from slam.loop.verify import VerifyParams
+
+print("script body ran", flush=True)  # no `if __name__ == "__main__":` guard
+rng = np.random.default_rng(0)
+target = rng.uniform(-10.0, 10.0, (2000, 3))
+gate = background.OdometryGate(np.eye(4), 5.0, 10.0, 45.0)
+cand = Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+job = background.KeyframeJob(
+    1, 1.0, [background.CandidateJob(cand, np.eye(4), gate, target)], target + 0.05, 3
+)
+pool = background.VerifyPool(1, VerifyParams())
+pool.submit(job)
+in_worker = job.future is not None
+results = pool.result(job)
+pool.close()
+print("verified in a worker:", in_worker, len(results), flush=True)
+"""
+
+
+def test_worker_does_not_run_an_unguarded_script_again(tmp_path):
+    """A spawned verification worker re-imports the main script unless it is hidden while
+    the worker starts: a script without a main guard would run its body (its whole
+    pipeline) again in the worker. The body runs once, the job in the worker."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED_SCRIPT)
+    out = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=300, check=True
+    ).stdout
+    assert out.count("script body ran") == 1, out
+    assert "verified in a worker: True 1" in out, out

@@ -4,7 +4,8 @@ A :class:`KeyframeJob` holds everything verifying one keyframe's candidates need
 clouds, the initial guesses and the odometry-gate data snapshotted when it was made), so
 :func:`run_job` is a pure function: the same job gives the same results in this process
 or in a worker process. :class:`VerifyPool` runs jobs in worker processes (spawned:
-small_gicp's registration holds the GIL, so a thread would not run beside the front end)
+small_gicp's registration holds the GIL, so a thread would not run beside the front end;
+a script without an ``if __name__ == "__main__":`` guard is not run again in them)
 and hands each result back at the job's ``due`` keyframe, waiting for it there if needed:
 which loop enters the graph at which keyframe never depends on timing, so runs are
 reproducible.
@@ -12,9 +13,12 @@ reproducible.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
+import sys
 import time
+import types
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -121,6 +125,22 @@ def run_job(job: KeyframeJob, params: VerifyParams) -> list[tuple[VerifyResult, 
     return out
 
 
+@contextlib.contextmanager
+def _main_hidden():
+    """``__main__`` is a blank module while workers spawn. A job needs nothing of the main
+    module (run_job and the job classes are imported by name), but a spawned worker runs the
+    main script again unless the script guards its body with ``if __name__ == "__main__":``;
+    a script that drives the pipeline without that guard would run its whole pipeline once
+    more inside the worker, and every job would wait for it."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")  # no __file__, no __spec__
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
+
+
 def _worker_init() -> None:
     """A worker verifies with one thread and logs nothing of its own."""
     logging.getLogger().setLevel(logging.WARNING)
@@ -149,8 +169,9 @@ class VerifyPool:
                 self.workers, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
             )  # fmt: skip
-            for _ in range(self.workers):
-                self._pool.submit(_worker_init)  # processes start on the first submit
+            with _main_hidden():
+                for _ in range(self.workers):
+                    self._pool.submit(_worker_init)  # processes start on the first submit
         except (BrokenProcessPool, RuntimeError, AssertionError, OSError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
             self._unavailable = True
@@ -163,7 +184,8 @@ class VerifyPool:
         if self._unavailable:
             return
         try:
-            job.future = self._pool.submit(run_job, job.payload(), self.params)
+            with _main_hidden():  # the executor may start a process on any submit
+                job.future = self._pool.submit(run_job, job.payload(), self.params)
         except (BrokenProcessPool, RuntimeError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
             self._unavailable = True
