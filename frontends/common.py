@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.deskew import deskew, se3_log
+from slam.deskew import deskew, se3_log, time_from_firing_order
 from slam.features.thinning import voxel_thin
 from slam.frontend import KeyframeConfig, is_new_keyframe
 from slam.registration.gicp import RegistrationError, RegistrationResult, se3_exp
@@ -151,6 +152,7 @@ class ScanToMapFrontend:
         self.T_trusted = np.eye(4)
         self.trusted_stamp: float | None = None
         self.trusted_frames_ago = 0
+        self._gaps: deque[float] = deque(maxlen=100)  # recent stamp gaps (s)
 
     # ------------------------------------------------------------------ to implement
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
@@ -172,13 +174,51 @@ class ScanToMapFrontend:
         return out
 
     def _deskew(self, scan: Scan) -> Scan:
-        if not self._c.deskew or scan.time is None or self.motion_dt is None:
-            return scan
-        if len(scan) == 0 or not np.any(scan.time > 0):
+        if not self._c.deskew or self.motion_dt is None or len(scan) == 0:
             return scan
         period = float(self.motion_dt)
-        xyz = deskew(scan.xyz, scan.time, se3_exp(self.twist), period)
-        return Scan(scan.stamp, xyz, scan.intensity, scan.ring, scan.time, scan.index)
+        time = scan.time
+        if time is None:
+            # a driver without a time field (and a cloud the pipeline could not read one
+            # from: column by column, as Velodyne drivers store it): the time from the
+            # azimuth along the firing order. Without it a VLP-16 bag without ring/time at
+            # 12-15 m/s went undeskewed (urban, 400 frames: APE 0.072 -> 0.396 m)
+            time = time_from_firing_order(scan.xyz, self._sweep_period())
+            if time is None:
+                return scan
+        if not np.any(time > 0):
+            return scan
+        xyz = deskew(scan.xyz, time, se3_exp(self.twist), period)
+        return Scan(scan.stamp, xyz, scan.intensity, scan.ring, time, scan.index)
+
+    def _sweep_period(self) -> float:
+        """The sensor's sweep period (s) from the recent stamp gaps: their span over the
+        sweeps they hold (each gap rounded to whole multiples of their median), so that
+        neither dropped messages nor stamp jitter change it (+-20 ms jitter: the median of
+        the gaps alone is ~3 % off, a 4.5 cm deskew error at the end of a 15 m/s sweep;
+        over the last 100 gaps ~0.3 %). ``motion_dt`` before any gap."""
+        if not self._gaps:
+            return float(self.motion_dt)
+        gaps = np.asarray(self._gaps)
+        sweeps = np.maximum(1.0, np.round(gaps / np.median(gaps)))
+        return float(gaps.sum() / sweeps.sum())
+
+    def _duration(self, t0: float | None, t1: float) -> float | None:
+        """Time (s) the sensor moved between the scans stamped ``t0`` and ``t1`` (None when
+        ``t1`` is not after ``t0``): a whole number of sweep periods, the stamp gap rounded
+        to it (at least one). A spinning LiDAR's scans are whole turns, so a gap of 1.4
+        periods is one period and late stamps, not 1.4 periods of motion: header stamps
+        taken when the driver got the data jitter by tens of ms, and with the raw gaps
+        (+-20 ms on the urban drive at 12-15 m/s) the prediction was scaled to 0.6-1.4
+        periods, 85 of 400 registrations were rejected and the written poses jumped by up
+        to 1.8 m. Until a few gaps give the period the gap is taken as it is."""
+        if t0 is None or not t1 > t0:
+            return None
+        gap = float(t1) - float(t0)
+        if len(self._gaps) < 3:
+            return gap
+        period = self._sweep_period()
+        return max(1.0, float(np.round(gap / period))) * period
 
     def _keyframe_information(self, info_reg: np.ndarray, relative: np.ndarray) -> np.ndarray:
         """Information of T_prevkf_current: the registration's covariance plus drift ~ distance."""
@@ -199,9 +239,7 @@ class ScanToMapFrontend:
         est.information = information_from_hessian(
             est.H, est.residual_variance, self._c.information
         )
-        since = None
-        if self.trusted_stamp is not None and stamp > self.trusted_stamp:
-            since = float(stamp - self.trusted_stamp)
+        since = self._duration(self.trusted_stamp, stamp)
         # the constant-velocity prediction is a measurement only once two trusted poses gave
         # it a velocity: a drive that starts at car speed has none on its first registration
         off_prediction = np.linalg.inv(T_pred) @ est.pose if self.n_trusted >= 2 else np.eye(4)
@@ -224,7 +262,7 @@ class ScanToMapFrontend:
     def _trust(self, est: Estimate, stamp: float, extras: dict) -> None:
         """Book-keeping of a trusted registration: running normal, re-acquired motion."""
         if est.result is not None:
-            since = None if self.trusted_stamp is None else float(stamp) - self.trusted_stamp
+            since = self._duration(self.trusted_stamp, stamp)
             if self._relaxation(since) > 1.0:  # lost long enough to accept a changed scene
                 self.normal.clear()
                 extras["reinitialised"] = 1
@@ -232,8 +270,9 @@ class ScanToMapFrontend:
         if self.lost_frames > 0 and self.trusted_stamp is not None:
             # the motion model restarts from the mean motion over the lost stretch
             n = self.lost_frames + 1
-            if self.trusted_stamp is not None and stamp > self.trusted_stamp:
-                self.motion_dt = (float(stamp) - self.trusted_stamp) / n
+            lost_for = self._duration(self.trusted_stamp, stamp)
+            if lost_for is not None:
+                self.motion_dt = lost_for / n
             rho, phi = se3_log(np.linalg.inv(self.T_trusted) @ est.pose)
             self.T_motion = se3_exp(np.concatenate([phi, rho]) / n)
             self.twist = np.concatenate([phi, rho]) / n
@@ -250,10 +289,11 @@ class ScanToMapFrontend:
         missing scan otherwise puts the prediction 1.2 m short, every registration from it
         is rejected as implausible and tracking is lost for a while (urban drive with every
         7th scan dropped: 29 of 89 frames lost, APE 5 -> 64 cm)."""
-        if self.motion_dt is None or self.last_stamp is None or self.motion_dt <= 0:
+        gap = self._duration(self.last_stamp, stamp)
+        if self.motion_dt is None or gap is None or self.motion_dt <= 0:
             return self.T_motion
-        ratio = (float(stamp) - self.last_stamp) / self.motion_dt
-        if not _off_duration(ratio) or ratio <= 0:
+        ratio = gap / self.motion_dt
+        if not _off_duration(ratio):
             return self.T_motion
         rho, phi = se3_log(self.T_motion)
         return se3_exp(np.concatenate([phi, rho]) * min(ratio, 10.0))
@@ -344,8 +384,9 @@ class ScanToMapFrontend:
         # (lost) keeps the motion model and the deskew twist as they were
         if est is not None and extras["recovered"] == 0:
             dt_before = self.motion_dt
-            if self.last_stamp is not None and scan.stamp > self.last_stamp:
-                self.motion_dt = float(scan.stamp - self.last_stamp)  # T_motion's duration
+            gap = self._duration(self.last_stamp, scan.stamp)
+            if gap is not None:
+                self.motion_dt = gap  # T_motion's duration
             self.T_motion = np.linalg.inv(self.T_last) @ pose
             rho, phi = se3_log(self.T_motion)
             a = self._c.deskew_smoothing if self.n_frames > 1 else 0.0
@@ -354,6 +395,8 @@ class ScanToMapFrontend:
             ratio = 1.0 if dt_before is None else self.motion_dt / dt_before
             old = self.twist * ratio if _off_duration(ratio) else self.twist
             self.twist = a * old + (1.0 - a) * np.concatenate([phi, rho])
+        if self.last_stamp is not None and scan.stamp > self.last_stamp:
+            self._gaps.append(float(scan.stamp) - self.last_stamp)
         self.T_last = pose.copy()
         self.last_stamp = float(scan.stamp)
         self.n_frames += 1

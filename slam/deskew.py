@@ -83,6 +83,46 @@ def _deskew_kernel(xyz, time, period, theta, u, rho, u_rho, uu_rho):
     return out
 
 
+def time_from_firing_order(
+    xyz: np.ndarray, sweep_period: float, *, max_backward_share: float = 0.01
+) -> np.ndarray | None:
+    """(N,) per-point time (s from the sweep start, in [0, sweep_period]) of a spinning-LiDAR
+    sweep stored in firing order, column after column (what Velodyne drivers publish), for a
+    driver that gives no time field; None when the storage order is not one turn.
+
+    Along the storage order the azimuth of such a cloud turns once, in one direction, in
+    small steps: t = (azimuth unwrapped along the order, from the first point) / 2 pi *
+    sweep_period, clipped to one sweep. A cloud stored beam by beam (several turns: the
+    pipeline reads its times from the layout, ``slam.sensor``), sorted, voxelised or merged
+    (steps back and forth) gives None. ``max_backward_share``: the share of steps allowed to
+    go back by more than 5 deg (a column straddling the seam, sensors firing their lasers
+    at staggered azimuths). Points without an azimuth (at the origin, not finite) take the
+    time of the valid points around them.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
+    if not sweep_period > 0:
+        raise InputError(f"sweep_period must be > 0 s, got {sweep_period}")
+    valid = np.flatnonzero(np.einsum("ij,ij->i", xyz[:, :2], xyz[:, :2]) > 1e-6)
+    if len(valid) < 100:
+        return None
+    az = np.arctan2(xyz[valid, 1], xyz[valid, 0])
+    step = (np.diff(az) + np.pi) % (2.0 * np.pi) - np.pi  # wrapped to [-pi, pi)
+    total = float(step.sum())
+    # one turn, give or take a few columns (an FOV-limited driver may cut the sweep)
+    if not 0.5 * 2.0 * np.pi <= abs(total) <= 1.1 * 2.0 * np.pi:
+        return None
+    advance = np.sign(total) * step
+    if np.mean(advance < -np.radians(5.0)) > max_backward_share:
+        return None
+    u = np.concatenate([[0.0], np.cumsum(advance)])
+    t = np.clip(u, 0.0, 2.0 * np.pi) / (2.0 * np.pi) * sweep_period
+    if len(valid) == len(xyz):
+        return t
+    return np.interp(np.arange(len(xyz)), valid, t)
+
+
 def deskew(
     xyz: np.ndarray,
     time: np.ndarray | None,

@@ -5,7 +5,7 @@ import pytest
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
-from slam.deskew import deskew, interpolate_pose, se3_log
+from slam.deskew import deskew, interpolate_pose, se3_log, time_from_firing_order
 from slam.errors import ConfigError, InputError
 
 PERIOD = 0.1
@@ -119,3 +119,32 @@ def test_compiled_deskew_on_simulated_scan(corridor_short):
     assert np.abs(fast - ref).max() < 1e-9
     with pytest.raises(ConfigError):
         deskew(scan.xyz, scan.time, T, PERIOD, backend="cuda")
+
+
+def test_time_from_firing_order_is_the_drivers_time(urban_short, urban_hdl64_short):
+    """A VLP-16 cloud stored column by column (the Velodyne driver's order): the time read
+    from the azimuth along the order is the driver's time field; a cloud stored beam by beam
+    (KITTI-style HDL-64E: several turns), shuffled or cut to a few points gives None."""
+    from slam.io.source import open_source
+    from slam.types import Scan
+
+    scans = [s for s in open_source(urban_short.bag) if isinstance(s, Scan)][:3]
+    for scan in scans:
+        t = time_from_firing_order(scan.xyz, PERIOD)
+        assert t is not None and t.min() == 0.0 and t.max() <= PERIOD
+        assert np.abs(t - scan.time).max() < 1e-6
+        # twice the period: twice the times (the fraction of the turn is what it knows)
+        assert np.allclose(time_from_firing_order(scan.xyz, 2 * PERIOD), 2 * t)
+    scan = scans[0]
+    with_gaps = scan.xyz.copy()
+    with_gaps[::97] = 0.0  # drivers write (0, 0, 0) for a missing return
+    t = time_from_firing_order(with_gaps, PERIOD)
+    assert np.abs(t - scan.time).max() < 1e-3
+    rng = np.random.default_rng(0)
+    assert time_from_firing_order(scan.xyz[rng.permutation(len(scan))], PERIOD) is None
+    assert time_from_firing_order(scan.xyz[:50], PERIOD) is None
+    kitti = next(s for s in open_source(urban_hdl64_short.bag) if isinstance(s, Scan))
+    assert kitti.time is None
+    assert time_from_firing_order(kitti.xyz, PERIOD) is None
+    with pytest.raises(InputError):
+        time_from_firing_order(scan.xyz, 0.0)

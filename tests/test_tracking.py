@@ -87,3 +87,51 @@ def test_dropped_scans_at_car_speed_keep_tracking(name):
     truth = np.linalg.inv(gt[idx[0]]) @ gt[idx]  # the odometry starts at the first scan
     err = np.linalg.norm(np.stack([o.pose[:3, 3] for o in outs]) - truth[:, :3, 3], axis=1)
     assert err.max() < 0.3  # drift from the start, no alignment
+
+
+def _urban_errors(outs, stamps, gt_stamps, gt):
+    """Position error from the start (no alignment) and per-frame step error (m)."""
+    idx = np.searchsorted(gt_stamps, np.asarray(stamps) - 1e-6)
+    truth = np.linalg.inv(gt[idx[0]]) @ gt[idx]
+    P = np.stack([o.pose for o in outs])
+    err = np.linalg.norm(P[:, :3, 3] - truth[:, :3, 3], axis=1)
+    rel_e = np.linalg.inv(P[:-1]) @ P[1:]
+    rel_g = np.linalg.inv(truth[:-1]) @ truth[1:]
+    return err, np.linalg.norm(rel_e[:, :3, 3] - rel_g[:, :3, 3], axis=1)
+
+
+def test_jittered_header_stamps_keep_tracking(urban_short):
+    """Header stamps taken when the driver got the data, +-20 ms off the sweep start: a
+    spinning LiDAR's scans are whole turns, so the motion between two scans is a whole number
+    of sweep periods, not the stamp gap. Before: the prediction was scaled to 0.6-1.4 of the
+    period, 2 of 60 frames were rejected and a written step was 0.30 m off (over 400 frames:
+    85 rejected, a step 1.76 m off); now as on the exact stamps (0.045 m, steps < 2 cm)."""
+    gt_stamps, gt = urban_short.read_ground_truth()
+    scans = [s for s in open_source(urban_short.bag) if isinstance(s, Scan)]
+    true = [s.stamp for s in scans]
+    rng = np.random.default_rng(0)
+    for s in scans:
+        s.stamp = float(s.stamp) + float(rng.uniform(-0.02, 0.02))
+    fe = instantiate("slam.frontends", load_config("improved_floam").frontend, "frontend")
+    outs = [fe.process(s) for s in scans]
+    assert sum(o.extras["tracking_lost"] for o in outs) == 0
+    err, step = _urban_errors(outs, true, gt_stamps, gt)
+    assert step.max() < 0.05, step.max()
+    assert err.max() < 0.1, err.max()
+
+
+def test_driver_without_ring_and_time_is_deskewed(urban_short):
+    """A VLP-16 bag without ring and time fields (an ``x y z intensity`` driver, points in
+    the Velodyne firing order): the time comes from the azimuth along the order and the
+    sweep is deskewed as with the time field (final error 0.041 m against 0.043 m with it;
+    before: not deskewed at all, 0.47 m off after 60 frames; urban, 400 frames, APE 0.072
+    -> 0.396 m)."""
+    gt_stamps, gt = urban_short.read_ground_truth()
+    scans = [s for s in open_source(urban_short.bag) if isinstance(s, Scan)]
+    for s in scans:
+        s.ring, s.time = None, None
+    fe = instantiate("slam.frontends", load_config("improved_floam").frontend, "frontend")
+    outs = [fe.process(s) for s in scans]
+    assert sum(o.extras["tracking_lost"] for o in outs) == 0
+    err, _ = _urban_errors(outs, [s.stamp for s in scans], gt_stamps, gt)
+    assert err[-1] < 0.1, err[-1]
