@@ -25,7 +25,7 @@ from slam.features.range_image_segmentation import Segmentation, SegmentationCon
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.preprocess.voxel import voxel_downsample
 from slam.registration.feature_icp import FeatureTarget
-from slam.registration.two_step import TwoStepConfig, two_step_align
+from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
 from slam.types import Scan
 
 
@@ -203,6 +203,8 @@ class LegoLoam(ScanToMapFrontend):
             res = two_step_align(
                 f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane, ground_residual_xyz=g_res
             )
+            if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
+                extras["remapped_axes"] = len(weak_translation(res.H, rc.degenerate_ratio))
             est = Estimate.from_registration(res, extras)
         est.pending = (f.edges, np.concatenate([f.ground, f.planes]))
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3

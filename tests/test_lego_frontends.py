@@ -118,3 +118,62 @@ def test_recipes():
     assert lpb.frontend["segmentation"]["enabled"] is False  # the preprocessing instead
     assert lpb.frontend["keyframe"] == lego.frontend["keyframe"]
     assert lpb.factors["loop_closure"]["enabled"] is False
+
+
+def _corridor_features(rng, x0=-20.0, x1=20.0):
+    """Plane points of a 3.5 m wide, 3 m high corridor along x (sensor at 0.88 m): floor,
+    walls and ceiling, 5 cm noise-free grid jittered."""
+    x = np.arange(x0, x1, 0.2)
+    side = np.arange(-1.7, 1.7, 0.2)
+    up = np.arange(-0.8, 2.0, 0.2)
+    parts = [
+        np.stack(np.meshgrid(x, side, [-0.88]), -1).reshape(-1, 3),  # floor
+        np.stack(np.meshgrid(x, side, [2.12]), -1).reshape(-1, 3),  # ceiling
+        np.stack(np.meshgrid(x, [-1.75], up), -1).reshape(-1, 3),  # walls
+        np.stack(np.meshgrid(x, [1.75], up), -1).reshape(-1, 3),
+    ]
+    pts = np.vstack(parts)
+    return pts + rng.normal(0, 0.003, pts.shape)
+
+
+def test_degenerate_corridor_keeps_the_prediction_along_it():
+    """A plain corridor (walls, floor, ceiling) plus a small patch across it that moves with
+    the sensor (a worker walking ahead): along the corridor only the patch constrains the
+    match, and it holds the scan where the last frame was. The plain matcher follows it
+    and loses the 0.3 m the sensor moved; the degeneracy-aware update (Zhang 2016) keeps
+    the prediction along the weak axis and still corrects the lateral 4 cm and 0.5 deg."""
+    from scipy.spatial.transform import Rotation
+
+    from slam.registration.feature_icp import FeatureTarget
+    from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
+
+    rng = np.random.default_rng(0)
+    walls = _corridor_features(rng)
+    # the patch 6 m ahead of the sensor, in the map where the previous frame saw it
+    yz = np.stack(np.meshgrid([6.0], np.arange(-0.3, 0.3, 0.1), np.arange(-0.4, 0.4, 0.1)), -1)
+    patch = yz.reshape(-1, 3)
+    plane_map = FeatureTarget(np.vstack([walls, patch]))
+    edge_map = FeatureTarget(np.zeros((0, 3)))
+    T_true = np.eye(4)  # the sensor moved 0.3 m along the corridor, 4 cm aside, 0.5 deg
+    T_true[:3, :3] = Rotation.from_euler("z", 0.5, degrees=True).as_matrix()
+    T_true[:3, 3] = [0.3, 0.04, 0.0]
+    scan_walls = (_corridor_features(rng, -19.0, 19.0) - T_true[:3, 3]) @ T_true[:3, :3]
+    scan = np.vstack([scan_walls, patch])  # the patch moved with the sensor
+    T_pred = np.eye(4)
+    T_pred[:3, 3] = [0.3, 0.0, 0.0]  # constant velocity: right along, wrong aside
+    results = {}
+    for ratio in (0.0, 0.08):
+        cfg = TwoStepConfig(degenerate_ratio=ratio, two_step=False, max_iterations=30)
+        res = two_step_align(
+            np.zeros((0, 3)), np.zeros((0, 3)), scan, edge_map, plane_map, T_pred, cfg
+        )
+        results[ratio] = res
+    weak = weak_translation(results[0.0].H, 0.08)
+    assert weak.shape == (1, 3) and abs(weak[0, 0]) > 0.99  # the corridor's axis
+    plain, kept = results[0.0].T_target_source, results[0.08].T_target_source
+    print("plain", plain[:3, 3], "kept", kept[:3, 3])
+    assert plain[0, 3] < 0.15  # pulled back towards the last frame by the moving patch
+    assert abs(kept[0, 3] - 0.3) < 0.01  # the prediction along the corridor
+    assert abs(kept[1, 3] - 0.04) < 0.005  # the walls' lateral correction
+    yaw = np.degrees(np.arctan2(kept[1, 0], kept[0, 0]))
+    assert abs(yaw - 0.5) < 0.05
