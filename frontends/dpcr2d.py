@@ -93,7 +93,12 @@ class Dpcr2dConfig:
     opened it (a per-region offset, the grid itself is never resampled), the robot by that
     of the last keyframe; scans that follow are drawn, and registered, in the graph's
     frame. The reported odometry stays continuous (the moves are not in it: the graph made
-    them).
+    them). visit_clouds (with graph_feedback): a keyframe's cloud, what the region edges
+    register, is the visit just ended (the submap at its start and every scan since, in
+    the front end's frame) instead of the regional map: a revisited map's older part lies
+    where the graph put it, and an edge from it would measure the graph's own estimate.
+    reanchor_loops (with graph_feedback): a re-anchor is an edge of the region graph
+    (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
     """
 
     submap_scans: int = 20
@@ -125,7 +130,9 @@ class Dpcr2dConfig:
     revisit_match_distance: float = 0.1
     revisit_min_m: float = 0.15
     revisit_min_deg: float = 2.0
-    graph_feedback: bool = True
+    graph_feedback: bool = False
+    visit_clouds: bool = True
+    reanchor_loops: bool = True
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
@@ -187,6 +194,7 @@ class Dpcr2d:
         self.kf_map: list[np.ndarray] = []
         self._hooked = False  # the pipeline calls on_graph_update (re-anchors are loops)
         self._moved_since_kf = np.zeros(3)  # map-frame moves of on_graph_update since then
+        self.visit: OccupancyGrid | None = None  # the scans since the last keyframe
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -196,10 +204,13 @@ class Dpcr2d:
             "regional_maps": sum(r.grid.nbytes for r in self.regions.values()),
         }
 
-    def region_placements(self, estimates: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    def region_placements(self, estimates: dict[int, np.ndarray]) -> dict[int, np.ndarray] | None:
         """Each regional map's placement (x, y, theta) in the graph's frame, from the
         optimised poses (4x4, by keyframe id) of the keyframes that opened them: the
-        corrections ``global_grid`` takes."""
+        corrections ``global_grid`` takes; None without graph feedback (the maps are then
+        drawn in the front end's frame: ``slam.io.grid_map.region_corrections``)."""
+        if not self._hooked:
+            return None
         out = {}
         for region_id, region in self.regions.items():
             T = estimates.get(region.owner)
@@ -378,7 +389,7 @@ class Dpcr2d:
         extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res.pose[:2])),
                       reanchor_deg=float(np.degrees(res.pose[2])))  # fmt: skip
         self._move(res.pose)
-        if self._hooked and maps[0].owner < len(self.kf_map):
+        if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
             # a loop, not odometry: the reported pose does not jump; the keyframe of this
             # frame carries the match as a constraint on the nearest map's keyframe
             self.feedback = compose2d(res.pose, self.feedback)
@@ -387,6 +398,20 @@ class Dpcr2d:
             extras.update(anchor_kf=maps[0].owner, anchor_x=float(z[0]), anchor_y=float(z[1]),
                           anchor_theta=float(z[2]))  # fmt: skip
         return True
+
+    def _visit_clouds(self) -> bool:
+        return self.cfg.visit_clouds and self.cfg.graph_feedback and self._hooked
+
+    def _fuse_visit(self, pts: np.ndarray, pose: np.ndarray) -> None:
+        """The visit since the last keyframe (map frame): the submap's scans, then each scan."""
+        if not self._visit_clouds():
+            return
+        if self.visit is None:
+            self.visit = OccupancyGrid(self.cfg.region_grid)
+            for p, q in self.window:
+                self.visit.add_scan(transform2d(q, p), q[:2])
+            return  # the window holds this scan already
+        self.visit.add_scan(transform2d(pose, pts), pose[:2])
 
     def _fuse_region(self, pts: np.ndarray, pose: np.ndarray) -> None:
         region = self.regions.get(self.region)
@@ -472,6 +497,7 @@ class Dpcr2d:
             self.kf_id += 1
         if len(pts) >= cfg.min_points:
             self._fuse_region(pts, self.pose)
+            self._fuse_visit(pts, self.pose)
         due = self.frame % cfg.second_every == 0 or (entered and region in self.regions)
         if cfg.second_registration and due and not reanchored:
             self._second_registration(timings)
@@ -485,10 +511,14 @@ class Dpcr2d:
             left = left if entered else None  # a re-anchor inside a region: no region event
             extras.update(region=region, region_left=-1 if left is None else left)
             if left is not None and left in self.regions:
-                left_region = self.regions[left]
-                obs = transform2d(left_region.offset, left_region.grid.obstacles())
+                if self._visit_clouds():
+                    obs = self.visit.obstacles() if self.visit is not None else np.zeros((0, 2))
+                else:
+                    left_region = self.regions[left]
+                    obs = transform2d(left_region.offset, left_region.grid.obstacles())
                 local = transform2d(inverse2d(self.pose), obs)
                 cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
+            self.visit = None  # the next visit starts after the graph update
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
             self._moved_since_kf = np.zeros(3)

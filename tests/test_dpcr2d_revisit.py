@@ -70,7 +70,7 @@ def test_graph_feedback_moves_the_robot_and_its_maps_not_the_odometry(lap):
     pull the robot back onto the unmoved grids), and the reported odometry stays
     continuous."""
     C = np.array([0.4, -0.2, np.radians(6.0)])
-    fe = Dpcr2d()
+    fe = Dpcr2d(Dpcr2dConfig(graph_feedback=True))
     T0 = lap.poses[0]
     reported, inside = [], []
     for k in range(200):

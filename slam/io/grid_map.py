@@ -85,9 +85,8 @@ def write_region_map(pipeline, out: str | Path) -> list[Path]:
     if not hasattr(frontend, "global_grid") or not pipeline.state.keyframes:
         return []
     placements = getattr(frontend, "region_placements", None)
-    if callable(placements):  # each map placed by the keyframe that opened it
-        corrections = placements(pipeline.state.estimates)
-    else:
+    corrections = placements(pipeline.state.estimates) if callable(placements) else None
+    if corrections is None:  # else each map placed by the keyframe that opened it
         corrections = region_corrections(pipeline)
     grid = frontend.global_grid(corrections)
     if grid.data.size == 0:
