@@ -211,14 +211,16 @@ class ScanToMapFrontend:
         taken when the driver got the data jitter by tens of ms, and with the raw gaps
         (+-20 ms on the urban drive at 12-15 m/s) the prediction was scaled to 0.6-1.4
         periods, 85 of 400 registrations were rejected and the written poses jumped by up
-        to 1.8 m. Until a few gaps give the period the gap is taken as it is."""
+        to 1.8 m. Until a few gaps give the period, and for a gap within 1e-4 periods of a
+        whole number of them (exact stamps), the gap is taken as it is."""
         if t0 is None or not t1 > t0:
             return None
         gap = float(t1) - float(t0)
         if len(self._gaps) < 3:
             return gap
         period = self._sweep_period()
-        return max(1.0, float(np.round(gap / period))) * period
+        whole = max(1.0, float(np.round(gap / period))) * period
+        return gap if abs(gap - whole) <= 1e-4 * period else whole
 
     def _keyframe_information(self, info_reg: np.ndarray, relative: np.ndarray) -> np.ndarray:
         """Information of T_prevkf_current: the registration's covariance plus drift ~ distance."""
