@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.config import load_config
-from slam.eval.map2d import fuse_scans, wall_thickness
+from slam.eval.map2d import fuse_scans, view_directions, wall_thickness
 from slam.eval.metrics import read_trajectory
 from slam.io.carmen import CarmenSource
 from slam.run import run_one
@@ -69,8 +69,13 @@ def map_consistency(
         r = np.linalg.norm(xy, axis=1)
         scans.append(xy[(r > 0.05) & (r < 30.0)])
         poses.append([T[k][0, 3], T[k][1, 3], np.arctan2(T[k][1, 0], T[k][0, 0])])
-    w = wall_thickness(fuse_scans(np.array(poses), scans))
-    return {"wall_median_m": w.median, "wall_p90_m": w.p90, "wall_doubled": w.doubled}
+    poses = np.array(poses)
+    grid = fuse_scans(poses, scans)
+    w = wall_thickness(grid)
+    side = wall_thickness(grid, views=view_directions(grid, poses, scans))  # one face at a time
+    return {"wall_median_m": w.median, "wall_p90_m": w.p90, "wall_doubled": w.doubled,
+            "wall_face_median_m": side.median, "wall_face_p90_m": side.p90,
+            "wall_face_doubled": side.doubled}  # fmt: skip
 
 
 def run(
@@ -118,6 +123,7 @@ def run(
         row.update(map_consistency(log, out, max_frames))
         floor = map_consistency(log, out, max_frames, every=1, first=50)
         row["wall_floor_m"] = floor["wall_median_m"]
+        row["wall_face_floor_m"] = floor["wall_face_median_m"]
     return row
 
 
@@ -207,6 +213,10 @@ def main(argv: list[str] | None = None) -> None:
                     ("wall_p90_m", "wall p90 (m)", ".3f"),
                     ("wall_doubled", "walls > 15 cm", ".2f"),
                     ("wall_floor_m", "first 50 scans (m)", ".3f"),
+                    ("wall_face_median_m", "face median (m)", ".3f"),
+                    ("wall_face_p90_m", "face p90 (m)", ".3f"),
+                    ("wall_face_doubled", "faces > 15 cm", ".2f"),
+                    ("wall_face_floor_m", "face, first 50 (m)", ".3f"),
                     ("ape_rmse", "APE RMSE (m)", ".3f"),
                     ("loc_err_ave", "LocErr_ave (m)", ".3f"),
                 ],

@@ -9,7 +9,7 @@ import pytest
 from frontends.dpcr2d import matrix_to_pose2
 from frontends.icp2d import Icp2d, Icp2dConfig, icp2d
 from slam.errors import ConfigError
-from slam.eval.map2d import fuse_scans, wall_thickness
+from slam.eval.map2d import fuse_scans, view_directions, wall_thickness
 from slam.io.carmen import CarmenSource
 from slam.mapping.grid2d import compose2d, inverse2d, transform2d
 from slam.sim.floorplan2d import simulate2d, wheel_odometry, write_sequence
@@ -75,3 +75,34 @@ def test_wall_thickness_sees_a_doubled_wall(rooms):
         moved[:, :2] += offset  # 10 / 20 cm across both wall directions
         bad = wall_thickness(fuse_scans(np.vstack([poses, moved]), scans + scans))
         assert bad.median > offset - 0.03 and bad.doubled > 0.5
+
+
+def test_wall_faces_seen_from_both_sides_are_not_a_doubled_wall():
+    """A 12 cm partition wall seen from both sides is two faces 12 cm apart: the plain
+    measure calls it thick, one face at a time (``views``) it is one cell; a face drawn
+    twice 10 cm apart from the same side stays thick either way (measured medians: both
+    sides 0.15 / 0.05 m, doubled 0.15 / 0.15 m)."""
+    rng = np.random.default_rng(0)
+    x = np.linspace(-4.0, 4.0, 400)
+
+    def scans_of(face_y: float, sensor_y: float, shift: float = 0.0):
+        poses, scans = [], []
+        for sx in np.linspace(-3.0, 3.0, 12):
+            wall = np.column_stack([x, np.full_like(x, face_y + shift)])
+            wall[:, 1] += rng.normal(0.0, 0.01, len(x))
+            poses.append([sx, sensor_y, 0.0])
+            scans.append(wall - [sx, sensor_y])
+        return poses, scans
+
+    def measure(parts, sides):
+        poses = np.array([p for part in parts for p in part[0]])
+        scans = [s for part in parts for s in part[1]]
+        grid = fuse_scans(poses, scans)
+        views = view_directions(grid, poses, scans) if sides else None
+        return wall_thickness(grid, views=views).median
+
+    both = [scans_of(0.0, -2.0), scans_of(0.12, 2.0)]
+    doubled = [scans_of(0.0, -2.0), scans_of(0.0, -2.0, shift=0.1)]
+    assert measure(both, False) > 0.1
+    assert measure(both, True) < 0.07
+    assert measure(doubled, False) > 0.1 and measure(doubled, True) > 0.1

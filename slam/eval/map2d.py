@@ -51,11 +51,32 @@ def fuse_scans(
     return grid
 
 
+def view_directions(grid: OccupancyGrid, poses: np.ndarray, scans: list[np.ndarray]) -> np.ndarray:
+    """(M, 2) mean unit direction sensor -> hit of the hits in each obstacle cell of
+    ``grid`` (the order of ``grid.obstacles()``; zero where none), from the same
+    ``poses`` / ``scans`` as ``fuse_scans``: the side a wall face was seen from."""
+    acc = np.zeros((*grid.data.shape, 2))
+    for pose, pts in zip(poses, scans, strict=True):
+        if not len(pts):
+            continue
+        world = transform2d(pose, pts)
+        d = world - pose[:2]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        rc = grid.cells_of(world)
+        ok = np.all((rc >= 0) & (rc < np.array(grid.data.shape)), axis=1)
+        np.add.at(acc, (rc[ok, 0], rc[ok, 1]), d[ok])
+    rc = np.argwhere(grid.occupied_mask())
+    v = acc[rc[:, 0], rc[:, 1]]
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+
+
 def wall_thickness(
     grid: OccupancyGrid,
     k: int = 40,
     linearity: float = 0.15,
     doubled_at: float = 0.15,
+    views: np.ndarray | None = None,
+    min_side: int = 10,
 ) -> WallThickness:
     """Local thickness (m) of the grid's walls: for every obstacle cell its ``k`` nearest
     obstacle cells (k = 40 at 5 cm cells: about 1 m of a single wall), their principal
@@ -63,7 +84,13 @@ def wall_thickness(
     neighbourhood is not line-like (minor / major eigenvalue >= ``linearity``: corners,
     clutter) are not walls and are left out. A wall seen once is ~1 cell thick; a wall
     drawn twice 10 cm apart measures ~10 cm over the whole stretch where the copies
-    overlap (a line fit across the copies would see one fat wall, not two)."""
+    overlap (a line fit across the copies would see one fat wall, not two).
+
+    ``views`` (``view_directions``): measure one face at a time - of a cell's neighbours
+    only those seen from the same side of the local wall as the cell (at least
+    ``min_side`` of them, else the cell is left out). The two faces of a thin partition
+    wall, seen from both sides, are two surfaces 10 - 20 cm apart, not a wall drawn twice;
+    a wall drawn twice from the same side still measures its offset."""
     obstacles = grid.obstacles()
     if len(obstacles) <= k:
         raise InputError(f"wall_thickness: {len(obstacles)} obstacle cells, need > {k}")
@@ -75,8 +102,14 @@ def wall_thickness(
     wall = evals[:, 0] < linearity * evals[:, 1]
     minor = evecs[wall, :, 0]  # (W, 2) normal of the local wall
     across = np.einsum("mki,mi->mk", rel[wall], minor)
-    p10, p90 = np.percentile(across, [10, 90], axis=1)
-    thick = p90 - p10
+    if views is not None:
+        side = np.einsum("mki,mi->mk", views[idx[wall]], minor)  # (W, k), cell itself first
+        same = np.sign(side) == np.sign(side[:, :1])
+        across = np.where(same, across, np.nan)
+        keep = same.sum(axis=1) >= min_side
+        across = across[keep]
+    p10, p90 = np.nanpercentile(across, [10, 90], axis=1) if len(across) else ([], [])
+    thick = np.asarray(p90) - np.asarray(p10)
     if len(thick) == 0:
         raise InputError("wall_thickness: no line-like neighbourhood in the grid")
     return WallThickness(
