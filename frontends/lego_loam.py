@@ -87,12 +87,6 @@ def lego_features(
     )
 
 
-def _lego_registration() -> TwoStepConfig:
-    # the degeneracy-aware update (two_step.degenerate_ratio): building prefix RMSE 1.33 ->
-    # 0.22 m, the plain-corridor slips gone; urban drive unchanged
-    return TwoStepConfig(degenerate_ratio=0.15)
-
-
 def _edge_map() -> LocalMapConfig:
     return LocalMapConfig(voxel_size=0.2, max_points_per_voxel=2)
 
@@ -112,7 +106,7 @@ class LegoLoamConfig(CommonConfig):
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
     ground_voxel: float = 0.2
-    registration: TwoStepConfig = field(default_factory=_lego_registration)
+    registration: TwoStepConfig = field(default_factory=TwoStepConfig)
     edge_map: LocalMapConfig = field(default_factory=_edge_map)
     plane_map: LocalMapConfig = field(default_factory=_plane_map)
 

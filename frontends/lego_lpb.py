@@ -71,9 +71,7 @@ class MapSection(IncrementalMapConfig):
 
 
 def _lpb_registration() -> TwoStepConfig:
-    # degenerate_ratio as LeGO-LOAM's: building prefix RMSE from the start 3.90 -> 1.06 m,
-    # 13 -> 0 frames lost; urban unchanged (2 of 300 frames remapped)
-    return TwoStepConfig(ground_weight=0.2, degenerate_ratio=0.15)
+    return TwoStepConfig(ground_weight=0.2)
 
 
 def _lpb_segmentation() -> SegmentationConfig:
