@@ -175,6 +175,9 @@ class Pipeline:
         self.beams: Any = None  # slam.sensor.BeamModel once estimated from the first scans
         self._buffer: list[Scan] = []  # the first scans, held until the beam model exists
         self._period = 0.1  # sweep period (s): median stamp step of the first scans
+        # per-point time from the layout for beam-by-beam clouds without one (run() decides
+        # from the source: KITTI / PCD folders hold motion-compensated scans)
+        self._layout_time = config.source.layout_time != "never"
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
@@ -217,7 +220,8 @@ class Pipeline:
         stored beam by beam in firing order, the per-point time from the azimuth."""
         if not (self.beams and len(scan)):
             return scan
-        need_ring, need_time = scan.ring is None, scan.time is None and self.beams.layout
+        need_ring = scan.ring is None
+        need_time = scan.time is None and self.beams.layout and self._layout_time
         if need_ring or need_time:  # one pass: the azimuth computed once for both
             ring, t = self.beams.fill(scan.xyz, self._period, ring=need_ring, time=need_time)
             if need_ring:
@@ -437,6 +441,8 @@ class Pipeline:
         is finalised (``state.stopped_by`` says why). Never loses computed frames.
         """
         st = self.state
+        if self.config.source.layout_time == "auto":
+            self._layout_time = not getattr(scans, "motion_compensated", False)
         began = time.perf_counter()
         try:
             with StopRequest() as stop:  # Ctrl-C: stop after the frame in hand
