@@ -58,6 +58,11 @@ SCENES: dict[str, SceneEntry] = {
     "building_loop": SceneEntry(
         "slam.sim.building:building_loop", ("building.py",), realistic=True
     ),
+    "building_return": SceneEntry(
+        "slam.sim.building_return:building_return",
+        ("building.py", "building_return.py"),
+        realistic=True,
+    ),
 }
 
 
