@@ -99,6 +99,13 @@ class Dpcr2dConfig:
     where the graph put it, and an edge from it would measure the graph's own estimate.
     reanchor_loops (with graph_feedback): a re-anchor is an edge of the region graph
     (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
+
+    visit_scans (0: off): the visit graph (``slam.visit_graph``, issue 14): a keyframe at
+    frame 0 and at the last frame of every ``visit_scans`` (not at region changes), its
+    cloud the hit cells of the scans since the keyframe before and the ``visit_pad``
+    before those, drawn at this front end's own poses (measurement only, never a map the
+    graph moved), for the region-edges plugin's visit loop search; ``visit_grid`` fuses
+    these clouds at the optimised keyframe poses (``map.pgm``). Needs graph_feedback off.
     """
 
     submap_scans: int = 20
@@ -133,12 +140,20 @@ class Dpcr2dConfig:
     graph_feedback: bool = False
     visit_clouds: bool = True
     reanchor_loops: bool = True
+    visit_scans: int = 0
+    visit_pad: int = 15
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
             raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
         if not self.region_width > 0:
             raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
+        if self.visit_scans < 0 or self.visit_pad < 0:
+            raise ConfigError("dpcr2d: visit_scans and visit_pad must be >= 0")
+        if self.visit_scans and self.graph_feedback:
+            raise ConfigError(
+                "dpcr2d: visit_scans needs graph_feedback off (measurement-only clouds)"
+            )
 
 
 @dataclass
@@ -195,6 +210,13 @@ class Dpcr2d:
         self._hooked = False  # the pipeline calls on_graph_update (re-anchors are loops)
         self._moved_since_kf = np.zeros(3)  # map-frame moves of on_graph_update since then
         self.visit: OccupancyGrid | None = None  # the scans since the last keyframe
+        # visit graph (visit_scans): the last scans at their reported poses, and each
+        # keyframe's visit cloud (its frame) for visit_grid
+        self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(
+            maxlen=self.cfg.visit_scans + self.cfg.visit_pad
+        )
+        self._since_kf = 0
+        self.visit_points: list[np.ndarray] = []
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -241,6 +263,19 @@ class Dpcr2d:
             self._move(delta)
         else:
             self.pose = compose2d(delta, self.pose)
+
+    def visit_grid(self, estimates: dict[int, np.ndarray]) -> OccupancyGrid | None:
+        """With ``visit_scans``: the map re-fused from the visits, each keyframe's visit
+        cloud (hits) at its optimised pose (4x4, by keyframe id); None otherwise."""
+        if not self.cfg.visit_scans:
+            return None
+        out = OccupancyGrid(self.cfg.region_grid)
+        for kf_id, pts in enumerate(self.visit_points):
+            T = estimates.get(kf_id)
+            if T is not None and len(pts):
+                pose = matrix_to_pose2(T)
+                out.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
+        return out
 
     def global_grid(self, corrections: dict[int, np.ndarray] | None = None) -> OccupancyGrid:
         """The global map: the regional maps fused probabilistically (log-odds added, paper
@@ -424,6 +459,19 @@ class Dpcr2d:
         pose = region.to_grid(pose)
         region.grid.add_scan(transform2d(pose, pts), pose[:2])
 
+    def _visit_cloud(self, anchor: np.ndarray) -> np.ndarray:
+        """The keyframe's visit cloud ((N, 3) float32, its frame): the scans since the
+        keyframe before and ``visit_pad`` before those (``slam.visit_graph.visit_cloud``)."""
+        from slam.visit_graph import visit_cloud
+
+        n = min(len(self._recent), self._since_kf + (self.cfg.visit_pad if self.kf_id else 0))
+        recent = list(self._recent)[len(self._recent) - n :]
+        self._since_kf = 0
+        local = visit_cloud(np.array([q for _, q in recent]), [p for p, _ in recent], anchor,
+                            self.cfg.region_grid.resolution)  # fmt: skip
+        self.visit_points.append(local)
+        return np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
+
     # ------------------------------------------------------------------ contract
     def process(self, scan: Scan) -> Odometry:
         cfg = self.cfg
@@ -492,7 +540,11 @@ class Dpcr2d:
                 region = int(self.division.region_of(self.pose[:2][None])[0])
                 entered = region != left
         self.region = region
-        is_kf = self.frame == 0 or entered or "anchor_kf" in extras
+        visits = cfg.visit_scans > 0
+        if visits:
+            is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0
+        else:
+            is_kf = self.frame == 0 or entered or "anchor_kf" in extras
         if is_kf:
             self.kf_id += 1
         if len(pts) >= cfg.min_points:
@@ -507,7 +559,15 @@ class Dpcr2d:
         T = pose2_to_matrix(reported)
         relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
         cloud = None
-        if is_kf:
+        if visits:
+            self._recent.append((pts, reported))
+            self._since_kf += 1
+        if is_kf and visits:
+            cloud = self._visit_cloud(reported)
+            extras.update(region=region, region_left=-1, visit=1)
+            self.pose_kf = reported
+            self.kf_map.append(self.pose.copy())
+        elif is_kf:
             left = left if entered else None  # a re-anchor inside a region: no region event
             extras.update(region=region, region_left=-1 if left is None else left)
             if left is not None and left in self.regions:

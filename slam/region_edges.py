@@ -43,6 +43,7 @@ from slam.mapping.grid2d import (
 from slam.registration.correlative2d import CorrelativeConfig, correlative_search
 from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
 from slam.types import Keyframe
+from slam.visit_graph import VisitGraphConfig, VisitLoops, loop_sigmas
 
 CSV_COLUMNS = ("source", "target", "region_source", "region_target", "match_rate", "rmse",
                "accepted", "reason")  # fmt: skip
@@ -63,7 +64,10 @@ class RegionEdgeConfig(FactorConfig):
     of the odometry is within ``wide_gate_m`` + gate_fraction * path and
     ``wide_gate_deg``; anchor_sigma_m / anchor_sigma_deg: the noise of a front end's
     re-anchor (its keyframe's ``anchor_kf`` / ``anchor_x`` / ``anchor_y`` /
-    ``anchor_theta`` extras: its pose on the map of that earlier keyframe), an edge too."""
+    ``anchor_theta`` extras: its pose on the map of that earlier keyframe), an edge too.
+    visits: the loop search of the visit graph (``slam.visit_graph``), used for the
+    keyframes a front end marks as visits (``dpcr2d`` with ``visit_scans``: extras
+    ``visit``) instead of the region pairs."""
 
     region_width: float = 4.0
     alpha: float = 1.5
@@ -84,6 +88,7 @@ class RegionEdgeConfig(FactorConfig):
     wide_gate_deg: float = 25.0
     anchor_sigma_m: float = 0.05
     anchor_sigma_deg: float = 1.0
+    visits: VisitGraphConfig = field(default_factory=VisitGraphConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -120,6 +125,7 @@ class RegionEdgePlugin:
         self._path: list[float] = [0.0]  # odometry distance at each keyframe (m)
         self.events: list[RegionEdge] = []
         self.plicp = PlicpConfig(max_distance=0.4, max_iterations=40)
+        self.visit_loops = VisitLoops(self.config.visits)
 
     # ------------------------------------------------------------------ helpers
     def _reference(self, graph: GraphView, kf_id: int) -> LineReference | None:
@@ -147,6 +153,8 @@ class RegionEdgePlugin:
         if kf.id > 0:
             step = float(np.linalg.norm(np.asarray(kf.relative)[:2, 3]))
             self._path.append(self._path[-1] + step)
+        if kf.extras.get("visit"):
+            return self._visit(kf, graph)
         anchors = self._anchor(kf)
         region = int(kf.extras.get("region_left", -1))
         cloud = graph.cloud(kf.id)
@@ -208,6 +216,26 @@ class RegionEdgePlugin:
                 )
             )
         return anchors + factors
+
+    def _visit(self, kf: Keyframe, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
+        """Loop edges of a visit keyframe (``slam.visit_graph.VisitLoops``): its cloud
+        searched on the clouds of earlier visits near its estimate."""
+        cloud = np.asarray(graph.cloud(kf.id), dtype=np.float64)[:, :2]
+        self.visit_loops.add(kf.id, matrix_to_pose2(kf.pose_odom), cloud)
+        edges, events = self.visit_loops.search(kf.id, lambda j: matrix_to_pose2(graph.estimate(j)))
+        for e in events:
+            self.events.append(
+                RegionEdge(e.new, e.old, -1, -1, e.inliers, e.score, e.accepted,
+                           e.reason if not e.accepted else "ok (visit)", True)
+            )  # fmt: skip
+        s = loop_sigmas(self.config.visits)
+        info = np.diag([1e6, 1e6, 1.0 / s[2] ** 2, 1.0 / s[0] ** 2, 1.0 / s[1] ** 2, 1e6])
+        noise = robust_noise(gtsam.noiseModel.Gaussian.Information(info), "cauchy",
+                             self.config.visits.robust_param)  # fmt: skip
+        return [
+            gtsam.BetweenFactorPose3(key(j), key(i), pose3(pose2_to_matrix(z)), noise)
+            for j, i, z in edges
+        ]
 
     def _anchor(self, kf: Keyframe) -> list[gtsam.BetweenFactorPose3]:
         """The edge of a front-end re-anchor (``dpcr2d``: the submap matched, by the wide

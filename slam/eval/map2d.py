@@ -119,3 +119,39 @@ def wall_thickness(
         int(len(thick)),
         int(len(obstacles)),
     )
+
+
+def windowed_floor(
+    poses: np.ndarray,
+    scans: list[np.ndarray],
+    window: int = 100,
+    every: int = 2,
+    **kwargs,
+) -> WallThickness:
+    """The single-visit floor of ``wall_thickness`` over the whole run: the scans cut
+    into consecutive windows of ``window`` scans (every ``every``-th fused, as the map),
+    each window's map measured on its own (a stretch of a few metres, no revisit inside),
+    and the cell-weighted mean of the windows' median / p90 / doubled share. The floor
+    at the start alone (the first 50 scans) says little about a building whose corridors
+    are longer, more cluttered or seen from farther than its first room."""
+    meds, p90s, doubled, cells, obstacles = [], [], [], [], 0
+    for lo in range(0, len(poses) - window + 1, window):
+        grid = fuse_scans(poses[lo : lo + window : every], scans[lo : lo + window : every])
+        try:
+            w = wall_thickness(grid, **kwargs)
+        except InputError:  # too few walls in this window
+            continue
+        meds.append(w.median)
+        p90s.append(w.p90)
+        doubled.append(w.doubled)
+        cells.append(w.cells)
+        obstacles += w.obstacles
+    if not cells:
+        raise InputError(f"windowed_floor: no window of {window} scans with walls")
+    return WallThickness(
+        float(np.average(meds, weights=cells)),
+        float(np.average(p90s, weights=cells)),
+        float(np.average(doubled, weights=cells)),
+        int(sum(cells)),
+        obstacles,
+    )

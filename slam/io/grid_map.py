@@ -80,10 +80,16 @@ def region_corrections(pipeline) -> dict[int, np.ndarray]:
 
 def write_region_map(pipeline, out: str | Path) -> list[Path]:
     """``map.pgm`` + ``map.yaml`` of a 2D run whose front end keeps regional maps
-    (``global_grid``): the regional maps fused at their optimised placement. [] otherwise."""
+    (``global_grid``): the regional maps fused at their optimised placement, or, when the
+    front end keeps visits (``visit_grid``), the visits' hits at their optimised keyframe
+    poses. [] otherwise."""
     frontend = pipeline.frontend
     if not hasattr(frontend, "global_grid") or not pipeline.state.keyframes:
         return []
+    visits = getattr(frontend, "visit_grid", None)
+    grid = visits(pipeline.state.estimates) if callable(visits) else None
+    if grid is not None:  # the visit graph: the visits re-fused at their optimised poses
+        return write_map_server(grid, out) if grid.data.size else []
     placements = getattr(frontend, "region_placements", None)
     corrections = placements(pipeline.state.estimates) if callable(placements) else None
     if corrections is None:  # else each map placed by the keyframe that opened it

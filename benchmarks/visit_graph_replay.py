@@ -1,0 +1,125 @@
+"""Replay the visit graph (``slam.visit_graph``) over a finished 2D run: the front end's
+own trajectory (``odometry.tum`` of a ``dpcr2d`` run, or the log's wheel odometry) and
+the log's scans -> optimised scan poses -> the map's wall thickness (every 2nd scan
+fused, ``slam.eval.map2d``), next to the run's own ``trajectory.tum``.
+
+    .venv/bin/python benchmarks/visit_graph_replay.py LOG.clf.bz2 RUN_DIR [--frames N]
+        [--set visit_scans=30 ...] [--out DIR]
+
+The front end does not depend on the back end (graph feedback off), so the replay is the
+pipeline with the visit graph as back end, without running the front end again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from slam.eval.map2d import fuse_scans, view_directions, wall_thickness
+from slam.eval.metrics import read_trajectory
+from slam.io.carmen import CarmenSource
+from slam.mapping.grid2d import matrix_to_pose2
+from slam.visit_graph import VisitGraphConfig, run_visit_graph
+
+
+def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """stamps, scans (N, 2) within 0.05-30 m, wheel odometry (K, 3) of a CARMEN log."""
+    stamps, scans, odom = [], [], []
+    for n, scan in enumerate(CarmenSource(log)):
+        if frames is not None and n >= frames:
+            break
+        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
+        r = np.linalg.norm(xy, axis=1)
+        scans.append(xy[(r > 0.05) & (r < 30.0)])
+        stamps.append(float(scan.stamp))
+        odom.append(np.asarray(scan.odom, dtype=np.float64))
+    return np.array(stamps), scans, np.array(odom)
+
+
+def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
+    """(K, 3) poses of a TUM trajectory at ``stamps`` (every scan must be in it)."""
+    st, T = read_trajectory(path)
+    by = {round(float(s), 4): k for k, s in enumerate(st)}
+    return np.array([matrix_to_pose2(T[by[round(float(s), 4)]]) for s in stamps])
+
+
+def walls(poses: np.ndarray, scans: list[np.ndarray], every: int = 2) -> dict:
+    p, s = poses[::every], scans[::every]
+    grid = fuse_scans(p, s)
+    w = wall_thickness(grid)
+    face = wall_thickness(grid, views=view_directions(grid, p, s))
+    return {"median": w.median, "p90": w.p90, "doubled": w.doubled,
+            "face_median": face.median, "face_p90": face.p90}  # fmt: skip
+
+
+def parse_sets(items: list[str]) -> dict:
+    types = {f.name: f.type for f in fields(VisitGraphConfig)}
+    out = {}
+    for item in items:
+        k, v = item.split("=", 1)
+        if k not in types:
+            raise SystemExit(f"unknown visit_graph key {k}; valid: {', '.join(types)}")
+        out[k] = int(v) if types[k] in ("int", int) else float(v)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("log", type=Path)
+    ap.add_argument("run", type=Path, help="a dpcr2d run folder (odometry.tum, trajectory.tum)")
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--wheels", action="store_true", help="start from the wheel odometry")
+    ap.add_argument("--set", action="append", default=[], help="VisitGraphConfig key=value")
+    ap.add_argument("--out", type=Path, default=None, help="write trajectory.tum + events")
+    ap.add_argument("--skip-run-walls", action="store_true")
+    args = ap.parse_args(argv)
+    stamps, scans, odom = load_scans(args.log, args.frames)
+    fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps)
+    cfg = VisitGraphConfig(**parse_sets(args.set))
+    t = time.process_time()
+    poses, vg = run_visit_graph(fe, scans, cfg)
+    cpu = time.process_time() - t
+    acc = [e for e in vg.events if e.accepted]
+    row = {
+        "scans": len(scans),
+        "visits": len(vg.fe),
+        "candidates": len(vg.events),
+        "loops": len(acc),
+        "ambiguous": sum(e.reason == "ambiguous" for e in vg.events),
+        "cpu_s": cpu,
+        "ms_per_scan": 1e3 * cpu / len(scans),
+        "search_ms": float(np.mean(vg.search_ms)) if vg.search_ms else 0.0,
+        "optimize_ms": float(np.mean(vg.optimize_ms)) if vg.optimize_ms else 0.0,
+        "loop_corr_m_median": float(np.median([e.correction_m for e in acc])) if acc else 0.0,
+        "visit_graph": walls(poses, scans),
+        "front_end": walls(fe, scans),
+        "floor_50": walls(fe[:50], scans[:50], every=1)["median"],
+    }
+    if not args.skip_run_walls and (args.run / "trajectory.tum").is_file():
+        row["run_trajectory"] = walls(poses_at(args.run / "trajectory.tum", stamps), scans)
+    print(json.dumps(row, indent=1))
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        with (args.out / "trajectory.tum").open("w") as fh:
+            for s, p in zip(stamps, poses, strict=True):
+                q = [0.0, 0.0, np.sin(p[2] / 2), np.cos(p[2] / 2)]
+                fh.write(f"{s:.6f} {p[0]:.6f} {p[1]:.6f} 0 {q[0]} {q[1]} {q[2]:.9f} {q[3]:.9f}\n")
+        with (args.out / "loops.csv").open("w") as fh:
+            fh.write(
+                "new,old,score,uniqueness,inliers,correction_m,correction_deg,accepted,reason\n"
+            )
+            for e in vg.events:
+                row_ = [e.new, e.old, f"{e.score:.3f}", f"{e.uniqueness:.3f}", f"{e.inliers:.3f}",
+                        f"{e.correction_m:.3f}", f"{e.correction_deg:.2f}", int(e.accepted),
+                        e.reason]  # fmt: skip
+                fh.write(",".join(map(str, row_)) + "\n")
+        (args.out / "summary.json").write_text(json.dumps(row, indent=1))
+
+
+if __name__ == "__main__":
+    main()
