@@ -333,7 +333,7 @@ def scan_steps(repeat: int) -> None:
             with numba.parallel_chunksize(1):
                 rik.window_knn(
                     xyz_s, rng, el_s, cx, cy, az_s, order, start, lo, hi, k, ri.MAX_VISITS,
-                    *rows, in_place,
+                    *rows, in_place, ri._NO_JOB, -1.0, ri._NO_EXIT,
                 )  # fmt: skip
                 t.append(time.process_time())
                 bad = np.flatnonzero(~(rows[2][order] if in_place else rows[2]))

@@ -2,7 +2,8 @@
 real KITTI-raw scans, next to small_gicp's own odometry measured in the same run.
 
     .venv/bin/python benchmarks/profile_stages.py [--frames 150] [--config improved_floam_loop]
-        [--datasets corridor park urban-hdl64 kitti-raw] [--markdown]
+        [--datasets corridor park urban-hdl64 kitti-raw] [--markdown] [--cpu]
+        [--set frontend.sor.stats_stride=8] [--variant est8:frontend.sor.stats_stride=8]
 
 Each dataset is run through the whole pipeline (front end, factor plugins, back end) with
 the recipe given. Front-end stages are the front end's own timings (``*_ms`` extras, mean
@@ -12,7 +13,10 @@ frame and per keyframe; the loop plugin's own detect/verify clocks when it repor
 scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans, timed
 right after it on the same machine state. ``... CPU (first100/last100)``: CPU ms of each
 stage per frame over the first and last 100 frames (metrics.json stage_cpu_ms_*), which,
-unlike wall time, a loaded machine does not inflate.
+unlike wall time, a loaded machine does not inflate. --cpu adds ``cpu <stage>`` rows: CPU ms
+per frame (process time, numba's threads included) around improved_floam's stage functions;
+``x small_gicp (CPU)`` is the same ratio in CPU time per frame. --variant runs each dataset
+once more per LABEL:KEY=V[,...] override set (an A/B on the same scans in the same run).
 """
 
 from __future__ import annotations
@@ -58,14 +62,58 @@ def load_scans(name: str, frames: int, tmp: Path) -> list[Scan]:
     return [s for s in open_source(sim.bag) if isinstance(s, Scan)][:frames]
 
 
-def profile(scans: list[Scan], config: str) -> dict[str, float]:
-    """Run the pipeline over ``scans``; ms per frame of every stage, frames/s, keyframes."""
-    pipe = Pipeline(load_config(config))
+def stage_cpu_clocks() -> tuple[dict[str, float], list]:
+    """CPU clocks (process time: numba's worker threads included, other processes not) around
+    the improved_floam stages; returns (clocks in ms, restore list)."""
+    import frontends.improved_floam as IF
+    from slam.mapping.local_map import VoxelHashMap
+    from slam.preprocess import sor
+
+    clocks: dict[str, float] = {}
+    restore = []
+
+    def timed(owner, attr: str, label) -> None:
+        f = getattr(owner, attr)
+        restore.append((owner, attr, f))
+
+        def wrapper(*a, **kw):
+            c = time.process_time()
+            try:
+                return f(*a, **kw)
+            finally:
+                key = label(a, kw) if callable(label) else label
+                clocks[key] = clocks.get(key, 0.0) + 1e3 * (time.process_time() - c)
+
+        setattr(owner, attr, wrapper)
+
+    timed(IF, "apply_sor", "cpu sor (k-NN + statistics)")
+    timed(IF, "extract_features", "cpu features (LOAM)")
+    timed(IF, "kappa_from_neighbours", "cpu curvature kappa")
+    timed(sor._LazyRows, "__getitem__", "cpu SOR rows completed for kappa")
+    timed(IF, "gicp_align", "cpu registration")
+    timed(IF.ImprovedFloam, "_insert", "cpu map update")
+    timed(IF, "estimate_covariances", lambda a, kw: "cpu map eq.(1)" if "neighbours" in kw
+          else "cpu source covariances")  # fmt: skip
+    timed(VoxelHashMap, "query", "cpu map k-NN queries")
+    return clocks, restore
+
+
+def profile(
+    scans: list[Scan], config: str, overrides: list[str] | None = None, cpu: bool = False
+) -> dict[str, float]:
+    """Run the pipeline over ``scans``; ms per frame of every stage, frames/s, keyframes.
+    cpu: also the CPU ms per frame of the improved_floam stages (``stage_cpu_clocks``)."""
+    pipe = Pipeline(load_config(config, overrides or []))
+    clocks, restore = stage_cpu_clocks() if cpu else ({}, [])
     t0 = time.perf_counter()
-    state = pipe.run(scans)
+    try:
+        state = pipe.run(scans)
+    finally:
+        for owner, attr, f in restore:
+            setattr(owner, attr, f)
     wall = time.perf_counter() - t0
     n, n_kf = max(state.frames, 1), max(len(state.keyframes), 1)
-    row: dict[str, float] = {}
+    row: dict[str, float] = {key: value / n for key, value in sorted(clocks.items())}
     for key, value in sorted(state.diagnostic_means().items()):
         if key.endswith("_ms"):
             row[f"frontend {key[:-3]}"] = value
@@ -162,6 +210,16 @@ def main() -> None:
     ap.add_argument("--config", default="improved_floam_loop")
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=DATASETS)
     ap.add_argument("--markdown", action="store_true", help="print a README table")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="KEY=V")
+    ap.add_argument(
+        "--variant",
+        nargs="+",
+        default=[],
+        help="LABEL:KEY=V[,KEY=V...]: each dataset once more per variant (A/B in one run)",
+    )
+    ap.add_argument(
+        "--cpu", action="store_true", help="CPU ms per frame of each improved_floam stage"
+    )
     ap.add_argument(
         "--growth",
         metavar="SCENE",
@@ -180,14 +238,30 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.datasets:
             scans = load_scans(name, args.frames, Path(tmp))
-            row = profile(scans, args.config)
-            t = time.perf_counter()
-            small_gicp_odometry(scans)
-            ref_fps = len(scans) / (time.perf_counter() - t)
-            row["small_gicp odometry frames/s"] = ref_fps
-            row["x small_gicp"] = row["frames/s"] / ref_fps
-            columns[f"{name} ({len(scans)})"] = row
-            print(f"{name}: {row['frames/s']:.1f} frames/s, x{row['x small_gicp']:.3f}", flush=True)
+            variants = [("", [])] + [
+                (v.partition(":")[0], [x for x in v.partition(":")[2].split(",") if x])
+                for v in args.variant
+            ]
+            for label, sets in variants:
+                row = profile(scans, args.config, args.overrides + sets, args.cpu)
+                c = time.process_time()
+                t = time.perf_counter()
+                small_gicp_odometry(scans)
+                ref_fps = len(scans) / (time.perf_counter() - t)
+                row["small_gicp odometry frames/s"] = ref_fps
+                row["small_gicp odometry CPU ms/frame"] = (
+                    1e3 * (time.process_time() - c) / len(scans)
+                )
+                row["x small_gicp"] = row["frames/s"] / ref_fps
+                row["x small_gicp (CPU)"] = (
+                    row["small_gicp odometry CPU ms/frame"] / row["frame_cpu_ms_first100"]
+                    if row.get("frame_cpu_ms_first100")
+                    else float("nan")
+                )
+                col = f"{name} ({len(scans)})" + (f" [{label}]" if label else "")
+                columns[col] = row
+                fps, ratio = row["frames/s"], row["x small_gicp"]
+                print(f"{col}: {fps:.1f} frames/s, x{ratio:.3f}", flush=True)
     stages = list(dict.fromkeys(k for row in columns.values() for k in row))
     names = list(columns)
     print()

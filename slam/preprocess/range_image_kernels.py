@@ -378,10 +378,20 @@ def window_knn(
     certified: np.ndarray,
     n_visits: np.ndarray,
     in_input_order: bool,
+    job: np.ndarray,
+    exit2: float,
+    exited: np.ndarray,
 ) -> None:
     """k nearest other points of every point, searched ring by ring outward from its own
     ring and, in each ring, outward in azimuth from its own azimuth, until a bound proves
     that no unvisited point can be nearer than the k-th found (then certified[i] = True).
+
+    job: empty (every point searched in full) or (N,) int8 per sorted position: 0 = skip
+    (its row is not written), 1 = search in full, 2 = stop as soon as the k-th distance
+    found is <= sqrt(exit2) m (exited[row] = True, certified False: the row holds k real
+    points, each distance an upper bound of the true one at its rank; the weighted SOR
+    needs no more to keep such a point, ``slam.preprocess.sor``). exited: (N,) bool, written
+    where job is given.
 
     Inputs sorted by ``range_image``. The bounds: the spherical law of haversines,
     hav(theta) = hav(de) + cos(e_p) cos(e_q) hav(phi) >= hav(de_min) + cos(e_p)
@@ -397,6 +407,7 @@ def window_knn(
     more than max_visits distance evaluations stops uncertified (its row is then not valid).
     """
     n_rings = len(start) - 1
+    use_job = len(job) > 0
     B = RING_BLOCK
     half = (k + 1) // 2  # own-ring positions each side read before any bound is tried
     # per-ring bounds: min cos of the elevation range, suffix min / prefix max elevations
@@ -474,6 +485,12 @@ def window_knn(
         g_a = start[g]
         g_cnt = start[g + 1] - g_a
         for s in range(g_a, g_a + g_cnt):
+            ex2 = -1.0  # exit below this squared k-th distance (-1: never)
+            if use_job:
+                if job[s] == 0:
+                    continue
+                if job[s] == 2:
+                    ex2 = exit2
             px, py, pz = xyz[s, 0], xyz[s, 1], xyz[s, 2]
             cxp, cyp = cx[s], cy[s]
             rp = rng[s]
@@ -493,8 +510,11 @@ def window_knn(
             span_kth2 = -1.0  # the kth2 the sector span was computed for (-1: none yet)
             s0 = 0
             ns = S
-            while (up_open or down_open) and visits <= max_visits:
+            stop_now = False  # exited
+            while (up_open or down_open) and visits <= max_visits and not stop_now:
                 for side in range(2):
+                    if stop_now:
+                        break
                     if side == 0:
                         if not up_open:
                             continue
@@ -563,6 +583,7 @@ def window_knn(
                             _sort10(bd, bi)
                         visits += w - 1
                         kth2 = bd[k - 1]
+                        stop_now = kth2 <= ex2
                         budget = cnt - w
                         u_right = pos + half + 1
                         u_left = pos - half - 1
@@ -609,7 +630,7 @@ def window_knn(
                     for direction in range(2):
                         step = 1 if direction == 0 else -1
                         u = u_right if direction == 0 else u_left
-                        while budget > 0 and visits <= max_visits:
+                        while budget > 0 and visits <= max_visits and not stop_now:
                             if u >= cnt:
                                 u -= cnt
                             elif u < 0:
@@ -651,13 +672,16 @@ def window_knn(
                             if d2 < kth2:
                                 _insert(bd, bi, d2, q)
                                 kth2 = bd[k - 1]
+                                stop_now = kth2 <= ex2
                                 stop = _stop_dot(kth2, r2, he, coef)
                 m += 1
             # rows in input order when the input is stored ring by ring (near-sequential
             # writes), else in sorted order (scattered writes cost a third of the kernel on
             # column-major scans; the caller gathers them back)
             o = order[s] if in_input_order else s
-            certified[o] = visits <= max_visits and bd[k - 1] < np.inf
+            certified[o] = visits <= max_visits and bd[k - 1] < np.inf and not stop_now
+            if use_job:
+                exited[o] = stop_now
             n_visits[o] = visits
             out_idx[o, 0] = order[s]
             row = out_dist[o]

@@ -13,9 +13,15 @@ import numpy as np
 
 from slam.errors import ConfigError, InputError
 from slam.preprocess.knn import knn, self_knn
-from slam.preprocess.sor_kernels import weighted_sor_kernel_simd
+from slam.preprocess.sor_kernels import (
+    safe_keep_radius,
+    stratified_sor_kernel,
+    weighted_sor_kernel_simd,
+)
 
 SOR_METHODS = ("weighted", "classic")
+STATS_TRIM = 0.001  # share of the sample's largest d left out of the early-exit radius
+STATS_ROUNDS = 3  # rounds of statistics and re-searched unsafe exits before the exact filter
 
 
 @dataclass
@@ -23,6 +29,12 @@ class SorConfig:
     """Outlier-removal settings. k neighbours, alpha threshold coefficient, delta (eq. 9).
 
     range_adaptive and max_density_ratio only affect the weighted method (see weighted_sor).
+
+    stats_stride / stats_min_points: the opt-in estimated statistics of the weighted method
+    (``weighted_sor_estimated``) for scans of at least stats_min_points points with a ring
+    field: one point in stats_stride (of the range-image order) gets its exact k-NN for the
+    statistics of eqs. (5), (8), (9), the others stop their search as soon as they are
+    certain to be kept. 0 = the exact statistics (default).
     """
 
     enabled: bool = True
@@ -32,6 +44,8 @@ class SorConfig:
     delta: float = 1e-5
     range_adaptive: bool = False
     max_density_ratio: float = 1.0
+    stats_stride: int = 0
+    stats_min_points: int = 100000
 
     def __post_init__(self) -> None:
         if self.method not in SOR_METHODS:
@@ -42,6 +56,10 @@ class SorConfig:
             raise ConfigError(f"SOR k must be >= 1, got {self.k}")
         if self.alpha < 0 or self.delta < 0 or self.max_density_ratio < 0:
             raise ConfigError("SOR alpha, delta and max_density_ratio must be >= 0")
+        if self.stats_stride < 0 or self.stats_stride == 1 or self.stats_min_points < 0:
+            raise ConfigError(
+                "SOR stats_stride must be 0 (exact statistics) or >= 2, stats_min_points >= 0"
+            )
 
 
 def _check_xyz(xyz: np.ndarray) -> np.ndarray:
@@ -57,16 +75,96 @@ def _check_xyz(xyz: np.ndarray) -> np.ndarray:
     return xyz
 
 
-@dataclass
 class Neighbourhoods:
     """The one k-NN query SOR makes, kept for reuse (e.g. the curvature correction).
 
     idx: (N, k+1) indices of each point's nearest points, itself first; dist: (N, k)
-    distances (m) to the k nearest other points, ascending.
+    distances (m) to the k nearest other points, ascending. Built by ``neighbourhoods``,
+    the search runs when first needed: ``apply_sor`` may then search with early exits
+    (``SorConfig.stats_stride``), after which ``idx`` completes the rows asked for
+    (``idx[rows, :k]``) with their exact neighbours on demand (``np.asarray(idx)``: all).
     """
 
-    idx: np.ndarray
-    dist: np.ndarray
+    def __init__(
+        self,
+        idx: np.ndarray | None = None,
+        dist: np.ndarray | None = None,
+        *,
+        xyz: np.ndarray | None = None,
+        k: int = 0,
+        ring: np.ndarray | None = None,
+    ) -> None:
+        self._idx, self._dist = idx, dist
+        self._xyz, self._k, self._ring = xyz, k, ring
+        self._image = None  # slam.preprocess.range_image.RangeImage of an early-exit search
+        self._res = None  # its RangeImageKnn
+        self._inexact: np.ndarray | None = None  # (N,) rows not yet exact
+
+    @property
+    def searched(self) -> bool:
+        return self._dist is not None
+
+    def _search(self) -> None:
+        if self._dist is None:
+            self._idx, self._dist = self_knn(self._xyz, self._k, ring=self._ring)
+
+    def complete(self, rows: np.ndarray | None = None) -> None:
+        """Make the given rows (all when None) exact k-NN rows."""
+        self._search()
+        if self._inexact is None:
+            return
+        todo = np.flatnonzero(self._inexact) if rows is None else np.asarray(rows).ravel()
+        todo = np.unique(todo[self._inexact[todo]]) if len(todo) else todo
+        if len(todo):
+            left = self._image.exact_rows(self._res, todo)
+            if len(left):  # the box search declined: a KD-tree over the whole scan
+                from slam.preprocess.knn import fallback_tree
+
+                k = self._dist.shape[1]
+                fb_dist, fb_idx = fallback_tree(self._xyz).query(self._xyz[left], k + 1)
+                others = fb_idx != left[:, None]
+                others[others.all(axis=1), -1] = False
+                self._idx[left, 0] = left
+                self._idx[left, 1:] = fb_idx[others].reshape(-1, k)
+                self._dist[left] = fb_dist[others].reshape(-1, k)
+            self._inexact[todo] = False
+        if rows is None or not self._inexact.any():
+            self._inexact = None
+            self._image = self._res = None
+
+    @property
+    def idx(self):
+        self._search()
+        return self._idx if self._inexact is None else _LazyRows(self)
+
+    @property
+    def dist(self) -> np.ndarray:
+        self.complete()
+        return self._dist
+
+
+class _LazyRows:
+    """``Neighbourhoods.idx`` while some rows are not exact: indexing by rows first
+    completes those rows; ``np.asarray`` completes all."""
+
+    def __init__(self, nbh: Neighbourhoods) -> None:
+        self._nbh = nbh
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self._nbh._idx.shape
+
+    def __len__(self) -> int:
+        return len(self._nbh._idx)
+
+    def __getitem__(self, key):
+        first = key[0] if isinstance(key, tuple) else key
+        self._nbh.complete(np.arange(len(self._nbh._idx))[first])
+        return self._nbh._idx[key]
+
+    def __array__(self, dtype=None, copy=None):
+        self._nbh.complete()
+        return self._nbh._idx if dtype is None else self._nbh._idx.astype(dtype)
 
 
 def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -> Neighbourhoods:
@@ -75,14 +173,15 @@ def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -
     ring: (N,) beam index of each point (``scan.ring``) when known: the exact range-image
     search (``slam.preprocess.range_image``; same distances as the KD-tree, same index sets
     up to ties; 1.3-2.5x less time than the KD-tree on 16- and 64-beam scans, measured in
-    benchmarks/bench_preprocess.py --scans). Without it: one KD-tree build and one batch
-    query."""
+    benchmarks/bench_preprocess.py --scans), run when first needed (``Neighbourhoods``).
+    Without it: one KD-tree build and one batch query."""
     k_eff = min(k, len(xyz) - 1)
     if k_eff < 1:
         idx, dist = knn(xyz, xyz, k_eff + 1)
         return Neighbourhoods(idx, dist[:, 1:])
-    idx, dist = self_knn(xyz, k_eff, ring=ring)
-    return Neighbourhoods(idx, dist)
+    if ring is None:
+        return Neighbourhoods(*self_knn(xyz, k_eff))
+    return Neighbourhoods(xyz=np.ascontiguousarray(xyz, dtype=np.float64), k=k_eff, ring=ring)
 
 
 def knn_distances(xyz: np.ndarray, k: int) -> np.ndarray:
@@ -211,6 +310,18 @@ def apply_sor(
         return np.ones(len(xyz), dtype=bool)
     if nbh is None and len(xyz) > 2:
         nbh = neighbourhoods(_check_xyz(xyz), cfg.k, ring=ring)
+    if (
+        cfg.method == "weighted"
+        and cfg.stats_stride
+        and not cfg.range_adaptive
+        and nbh is not None
+        and not nbh.searched
+        and len(xyz) >= max(cfg.stats_min_points, 3)
+    ):
+        _check_xyz(xyz)
+        keep = weighted_sor_estimated(nbh, cfg)
+        if keep is not None:
+            return keep
     dist = None if nbh is None else nbh.dist
     if cfg.method == "classic":
         return classic_sor(xyz, cfg.k, cfg.alpha, dist=dist)
@@ -225,3 +336,66 @@ def apply_sor(
             dist=dist,
         )
     raise ConfigError(f"unknown SOR method '{cfg.method}'; valid: {', '.join(SOR_METHODS)}")
+
+
+def weighted_sor_estimated(nbh: Neighbourhoods, cfg: SorConfig) -> np.ndarray | None:
+    """The weighted SOR keep-mask (eqs. (4)-(9)) with estimated statistics, for the
+    not yet searched range-image neighbourhoods ``nbh``; None where it does not apply (the
+    caller then runs the exact filter on the same ``nbh``).
+
+    One point in ``cfg.stats_stride`` of the range-image order is searched in full first;
+    eq. (7) on their statistics gives a keep radius (``safe_keep_radius``: a point whose
+    k-th distance is below it is kept whatever its exact distances). Every other point
+    stops its search as soon as its k-th distance found is below that radius (kept); the
+    others are searched in full. The statistics are then the exact rows' sums plus, for the
+    points that stopped, the mean of the sampled points of the same stratum (k-th distance
+    below the radius) times their number; the exact rows are decided on them. If the radius
+    is not safe under these statistics, the stopped rows are completed and the exact filter
+    decides (None). The stopped rows of ``nbh.idx`` are completed when asked for."""
+    from slam.preprocess.range_image import range_image_of
+
+    xyz, k, ring = nbh._xyz, nbh._k, nbh._ring
+    n = len(xyz)
+    image = range_image_of(xyz, ring, k)
+    if not image.beams:
+        return None
+    a, dr = cfg.alpha, cfg.max_density_ratio
+    sample = image.order[:: cfg.stats_stride]  # input indices, spread over every ring
+    job = np.zeros(n, dtype=np.int8)
+    job[sample] = 1
+    res = image.knn(k, complete=True, job=job)
+    if not res.complete:
+        return None
+    # the radius from the sample's statistics without its largest d (a few isolated points
+    # in the sample make its sigma 2x the scan's; a radius too small only costs time) and
+    # half its mean density (its mean is the densest points')
+    st = weighted_sor_terms_fast(res.dist[sample], a, cfg.delta, dr)
+    d_s = np.sort(st.d)[: max(int(len(st.d) * (1.0 - STATS_TRIM)), 2)]
+    sigma_s = float(d_s.std(ddof=1)) + cfg.delta
+    radius = safe_keep_radius(float(d_s.mean()), sigma_s, 0.5 * float(st.rho.mean()), k, a, dr)
+    job[:] = 2
+    job[sample] = 0
+    res = image.knn(k, complete=True, job=job, exit_below=radius, into=res)
+    if not res.complete:
+        return None
+    exited = res.exited.copy()
+    nbh._idx, nbh._dist = res.idx, res.dist
+    nbh._image, nbh._res, nbh._inexact = image, res, exited
+    stand_in = np.zeros(n, dtype=bool)
+    stand_in[sample] = res.dist[sample, -1] <= radius
+    for _ in range(STATS_ROUNDS):
+        n_unknown = int(np.count_nonzero(exited))
+        if n_unknown and not stand_in.any():
+            return None
+        d, mu, sigma, rho_avg, theta = stratified_sor_kernel(
+            res.dist, ~exited, stand_in, n_unknown, a, cfg.delta, dr
+        )
+        safe = safe_keep_radius(mu, sigma, rho_avg, k, a, dr)
+        # stopped rows the final statistics do not back (their k-th distance found, an
+        # upper bound of the true one, above the safe radius): searched in full, once more
+        unsafe = np.flatnonzero(exited & (res.dist[:, -1] > safe))
+        if len(unsafe) == 0:
+            return exited | (d <= theta)
+        nbh.complete(unsafe)
+        exited[unsafe] = False
+    return None  # not settled: the exact filter

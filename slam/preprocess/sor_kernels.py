@@ -139,3 +139,113 @@ def weighted_sor_kernel_simd(
     for i in range(n):
         theta[i] = mu + alpha * sigma * (1.0 + min(rho_avg / rho[i], max_density_ratio))  # (7)
     return d, mu, sigma, rho, theta
+
+
+@njit(cache=True)
+def safe_keep_radius(
+    mu: float, sigma: float, rho_avg: float, k: int, alpha: float, max_density_ratio: float
+) -> float:
+    """The largest u (m) with x <= theta(x) for every 0 <= x <= u, where theta(r) = mu +
+    alpha sigma (1 + min(rho_avg / rho(r), max_density_ratio)) is eq. (7) for a point whose
+    k-th neighbour is at r (rho(r) = k / (4/3 pi r^3)). A point whose k-th distance is
+    <= u is kept whatever its other distances: d_i <= r_k (a weighted mean of distances
+    up to r_k) and theta grows with r_k, so d_i <= theta(d_i) <= theta(r_k).
+    theta(x) - x is convex up to the clamp and falls beyond it: bisection for its first
+    root."""
+    a = mu + alpha * sigma  # theta >= a everywhere
+    top = mu + alpha * sigma * (1.0 + max_density_ratio)  # theta's largest value
+    sa = alpha * sigma
+    c = rho_avg * (4.0 / 3.0 * np.pi) / k  # rho_avg / rho(x) = c x^3
+    if sa <= 0.0 or c <= 0.0 or max_density_ratio <= 0.0:
+        return a
+    x_cap = (max_density_ratio / c) ** (1.0 / 3.0)  # the clamp from here on
+    hi = min(x_cap, top)
+    if hi <= a:
+        return top
+
+    def g(x: float) -> float:
+        return mu + sa * (1.0 + min(c * x * x * x, max_density_ratio)) - x
+
+    x0 = 1.0 / np.sqrt(3.0 * sa * c)  # the minimum of the convex part
+    xm = min(max(x0, a), hi)
+    if g(xm) >= 0.0:  # no root before hi; beyond x_cap theta is constant (= top)
+        return top
+    lo_x, hi_x = a, xm  # g(a) >= 0 > g(xm), g decreasing on [a, xm]
+    for _ in range(60):
+        mid = 0.5 * (lo_x + hi_x)
+        if g(mid) >= 0.0:
+            lo_x = mid
+        else:
+            hi_x = mid
+    return lo_x
+
+
+@njit(cache=True)
+def stratified_sor_kernel(
+    dist: np.ndarray,
+    known: np.ndarray,
+    stand_in: np.ndarray,
+    n_unknown: int,
+    alpha: float,
+    delta: float,
+    max_density_ratio: float,
+) -> tuple[np.ndarray, float, float, float, np.ndarray]:
+    """(d, mu, sigma, rho_avg, theta) of eqs. (4)-(9) when only the ``known`` rows of the
+    (N, k) neighbour distances (m) are exact: the n_unknown other rows count as copies of
+    the mean of the ``stand_in`` rows (known rows drawn from the same stratum, e.g. every
+    s-th point with a k-th distance below the exit radius). Sums of d_avg (5), mu (8),
+    sigma (9) and rho_avg are the known rows' plus n_unknown times the stand-ins' mean;
+    d and theta are given on the known rows (0 elsewhere). Needs a stand-in when
+    n_unknown > 0."""
+    n, k = dist.shape
+    vol = 4.0 / 3.0 * np.pi
+    rho = np.zeros(n)
+    tot_k = tot_s = rho_k = rho_s = 0.0
+    m_s = 0
+    for i in range(n):
+        if not known[i]:
+            continue
+        row = 0.0
+        for t in range(k):
+            row += dist[i, t]
+        r = max(dist[i, k - 1], 1e-9)
+        rho[i] = k / (vol * (r * r * r))
+        tot_k += row
+        rho_k += rho[i]
+        if stand_in[i]:
+            tot_s += row
+            rho_s += rho[i]
+            m_s += 1
+    scale = n_unknown / m_s if m_s > 0 else 0.0
+    d_avg = max((tot_k + scale * tot_s) / (n * k), 1e-12)  # eq. (5)
+    rho_avg = (rho_k + scale * rho_s) / n
+    d = np.zeros(n)
+    sum_k = sum_s = 0.0
+    for i in range(n):
+        if not known[i]:
+            continue
+        sw = 0.0
+        swd = 0.0
+        for t in range(k):
+            w = np.exp(-dist[i, t] / d_avg)  # eq. (4)
+            sw += w
+            swd += w * dist[i, t]
+        d[i] = swd / sw  # eq. (6)
+        sum_k += d[i]
+        if stand_in[i]:
+            sum_s += d[i]
+    mu = (sum_k + scale * sum_s) / n  # eq. (8)
+    var_k = var_s = 0.0
+    for i in range(n):
+        if known[i]:
+            e = (d[i] - mu) ** 2
+            var_k += e
+            if stand_in[i]:
+                var_s += e
+    sigma = np.sqrt((var_k + scale * var_s) / max(n - 1, 1)) + delta  # eq. (9)
+    theta = np.zeros(n)
+    for i in range(n):
+        if known[i]:
+            ratio = min(rho_avg / rho[i], max_density_ratio)
+            theta[i] = mu + alpha * sigma * (1.0 + ratio)  # eq. (7)
+    return d, mu, sigma, rho_avg, theta
