@@ -16,6 +16,14 @@ back can be tied to the way out:
 - back: west along the second corridor, down the middle spine, west along the first
   corridor, 8 m past the start.
 
+``building_loop_return``: ``building_loop``'s rectangle and back (~0.91 km): east along the
+first corridor, up the middle spine, west along the second corridor through its plain
+stretch (x = 60-90 m), down the west spine, east along the first corridor into the first
+hall (x = 70-110 m), a turnaround loop there (3.5 m of arc per 90 deg, east of the
+workers' lane in that hall), then the whole way back: west along the first corridor, up
+the west spine, east along the second corridor, down the middle spine and west along the
+first corridor, 8 m past the start. Every corridor of it is driven in both directions.
+
 Same floor, workers and machinery as the other building routes (the same seeds), the
 same robot (:func:`slam.sim.building.robot_trajectory`'s limits) and sensor. The module
 only adds: the other routes' sequences (and their cache keys, which cover building.py
@@ -33,6 +41,7 @@ from slam.sim.building import (
     MAX_SPEED,
     SENSOR_HEIGHT,
     SPINE_M,
+    SPINE_W,
     _floor,
     _walkers,
     route_path,
@@ -54,26 +63,70 @@ UTURN_NODES = (
 BACK_NODES = ((200.0, LANES[1]), (SPINE_M, LANES[1]), (SPINE_M, LANES[0]), (16.0, LANES[0]))
 
 
-def return_path(ds: float = 0.05) -> np.ndarray:
-    """The robot's path (K,2): out, the hall turnaround, back (m). The three pieces meet
-    on straight corridor stretches, so the path is curvature-continuous."""
-    out = route_path(OUT_NODES, ds)
+# building_loop_return: building_loop's rectangle, a turnaround in the first hall (east of
+# the workers crossing it at y = 14 m, x = 80-100 m), and the rectangle back.
+LOOP_UTURN_TURN_LENGTH = 3.5  # m of arc per 90 deg (minimum radius 1.1 m)
+LOOP_OUT_NODES = (
+    (24.0, LANES[0]),
+    (SPINE_M, LANES[0]),
+    (SPINE_M, LANES[1]),
+    (SPINE_W, LANES[1]),
+    (SPINE_W, LANES[0]),
+    (100.0, LANES[0]),
+)
+LOOP_UTURN_NODES = (
+    (100.0, LANES[0]),
+    (108.0, LANES[0]),
+    (108.0, LANES[0] + 4.5),
+    (101.0, LANES[0] + 4.5),
+    (101.0, LANES[0]),
+    (90.0, LANES[0]),
+)
+LOOP_BACK_NODES = (
+    (90.0, LANES[0]),
+    (SPINE_W, LANES[0]),
+    (SPINE_W, LANES[1]),
+    (SPINE_M, LANES[1]),
+    (SPINE_M, LANES[0]),
+    (16.0, LANES[0]),
+)
+
+
+def turnaround_path(
+    out_nodes, uturn_nodes, back_nodes, uturn_turn_length: float, ds: float = 0.05
+) -> np.ndarray:
+    """Path (K,2) m: ``out_nodes`` and ``back_nodes`` with the corridor corners of the other
+    building routes, ``uturn_nodes`` (a loop in a hall) with tighter turns. The pieces meet
+    on straight stretches, so the path is curvature-continuous."""
+    out = route_path(out_nodes, ds)
     uturn = lane_route(
-        np.asarray(UTURN_NODES),
+        np.asarray(uturn_nodes),
         lane_offset=0.0,
-        left_turn_length=UTURN_TURN_LENGTH,
-        right_turn_length=UTURN_TURN_LENGTH,
+        left_turn_length=uturn_turn_length,
+        right_turn_length=uturn_turn_length,
         ds=ds,
     )
-    back = route_path(BACK_NODES, ds)
+    back = route_path(back_nodes, ds)
     return np.vstack([out, uturn[1:], back[1:]])
 
 
-def return_trajectory(rng: np.random.Generator) -> Trajectory:
+def return_path(ds: float = 0.05) -> np.ndarray:
+    """``building_return``'s path (K,2): out, the hall turnaround, back (m)."""
+    return turnaround_path(OUT_NODES, UTURN_NODES, BACK_NODES, UTURN_TURN_LENGTH, ds)
+
+
+def loop_return_path(ds: float = 0.05) -> np.ndarray:
+    """``building_loop_return``'s path (K,2): the rectangle, the turnaround, back (m)."""
+    return turnaround_path(
+        LOOP_OUT_NODES, LOOP_UTURN_NODES, LOOP_BACK_NODES, LOOP_UTURN_TURN_LENGTH, ds
+    )
+
+
+def return_trajectory(rng: np.random.Generator, xy: np.ndarray | None = None) -> Trajectory:
     """The ground robot of the other building routes (:func:`slam.sim.building.robot_trajectory`:
-    at most 3 m/s, 0.8 / 1 m/s^2, 1 m/s^2 lateral, the same body sway) on
-    :func:`return_path`, no stops."""
-    xy = return_path()
+    at most 3 m/s, 0.8 / 1 m/s^2, 1 m/s^2 lateral, the same body sway) on ``xy`` (default
+    :func:`return_path`), no stops."""
+    xy = return_path() if xy is None else xy
     return route_trajectory(
         xy,
         speed_limit=np.full(len(xy), MAX_SPEED),
@@ -91,13 +144,11 @@ def return_trajectory(rng: np.random.Generator) -> Trajectory:
     )
 
 
-def building_return(seed: int = 0, *, pedestrians: bool = True) -> Scene:
-    """The building floor, out along two corridors and back along them (loop closure)."""
-    name = "building_return"
+def _scene(name: str, seed: int, xy: np.ndarray, pedestrians: bool, what: str) -> Scene:
     b = _floor(np.random.default_rng([seed, 13]))  # the same floor for every route
     rng = np.random.default_rng([seed, 14])
     peds = _walkers(rng) if pedestrians else []
-    traj = return_trajectory(np.random.default_rng([seed, 15]))
+    traj = return_trajectory(np.random.default_rng([seed, 15]), xy)
     return Scene.from_builder(
         name,
         b,
@@ -107,7 +158,25 @@ def building_return(seed: int = 0, *, pedestrians: bool = True) -> Scene:
         revisit_radius=3.0,
         sensor=scene_sensor(name),
         description=(
-            f"building under construction {FLOOR_X:g}x{FLOOR_Y:g} m, out and back along "
-            f"two corridors, {traj.length:.0f} m at up to {MAX_SPEED:g} m/s"
+            f"building under construction {FLOOR_X:g}x{FLOOR_Y:g} m, {what}, "
+            f"{traj.length:.0f} m at up to {MAX_SPEED:g} m/s"
         ),
+    )
+
+
+def building_return(seed: int = 0, *, pedestrians: bool = True) -> Scene:
+    """The building floor, out along two corridors and back along them (loop closure)."""
+    return _scene(
+        "building_return", seed, return_path(), pedestrians, "out and back along two corridors"
+    )
+
+
+def building_loop_return(seed: int = 0, *, pedestrians: bool = True) -> Scene:
+    """building_loop's rectangle driven and driven back (loop closure)."""
+    return _scene(
+        "building_loop_return",
+        seed,
+        loop_return_path(),
+        pedestrians,
+        "the loop route there and back",
     )

@@ -63,6 +63,11 @@ SCENES: dict[str, SceneEntry] = {
         ("building.py", "building_return.py"),
         realistic=True,
     ),
+    "building_loop_return": SceneEntry(
+        "slam.sim.building_return:building_loop_return",
+        ("building.py", "building_return.py"),
+        realistic=True,
+    ),
 }
 
 
