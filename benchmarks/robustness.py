@@ -24,8 +24,16 @@ Data (``--cases``; simulated sequences come from the cache, ``slam.sim.cache``):
 urban-{vlp16,hdl32,hdl64,os128} (the car-speed drive with stops at junctions; hdl64 has no
 ring/time fields, KITTI-style), urban-strip (the vlp16 bag rewritten without ring and time:
 an ``xyzi`` driver), urban-jitter (header stamps jittered by up to +-20 ms), urban-drop5
-(every 5th message dropped), urban-swap (every 10th pair of messages recorded in swapped
-order), urban-reversed (the stamps of the bag run backwards), park, plaza, corridor, kitti
+(every 5th message dropped), urban-gap20 (2 s of messages missing: a stalled driver),
+urban-swap (every 10th pair of messages recorded in swapped order), urban-reversed (the
+header stamps run backwards), urban-zerostamps (header stamps all 0: a driver that does
+not set them), urban-clockback (the header clock steps back 2.55 s at message 200),
+urban-glitch (one header stamp 100 s ahead), urban-empty3 (the first three clouds empty),
+urban-partial1 (the first cloud only the sweep's last 36 degrees), urban-nan30 (30 % of
+every cloud NaN), urban-still10 (10 s standing before the drive, 1 cm sensor noise),
+urban-truncated (the bag cut at 60 % of its bytes, no index); the rewritten bags are
+recorded 50-60 ms after each scan's true stamp, in the variant's message order, so that
+a run on the record time is judged too; park, plaza, corridor, kitti
 (the 22 real KITTI-raw HDL-64E scans, a folder of PCD files) and pair (the real HDL-32E scan
 pair and its reference transform).
 """
@@ -47,13 +55,20 @@ APE_LIMIT_PCT = 5.0  # % of the path
 STOP_LIMIT = 0.5  # m over one stop
 STILL_STEP = 0.02  # m per frame: below this the ground truth stands still
 MIN_STOP_S = 1.0  # s
+STOP_TEXT = 90  # characters of the stop reason in the table
 
 URBAN_SENSORS = ("vlp16", "hdl32", "hdl64", "os128")
-VARIANTS = ("strip", "jitter", "drop5", "swap", "reversed")
+VARIANTS = (
+    "strip", "jitter", "drop5", "gap20", "swap", "reversed", "zerostamps", "clockback",
+    "glitch", "empty3", "partial1", "nan30", "still10",
+)  # fmt: skip
+GAP_AT = 150  # the first message of gap20's 2 s stall (a third into shorter bags)
+JUMP_AT = 200  # where clockback's clock steps back, glitch's stamp jumps (or half-way)
+STILL_SCANS = 100  # 10 s at 10 Hz
 SCENES = ("park", "plaza", "corridor")
 ALL_CASES = (
     [f"urban-{s}" for s in URBAN_SENSORS]
-    + [f"urban-{v}" for v in VARIANTS]
+    + [f"urban-{v}" for v in (*VARIANTS, "truncated")]
     + list(SCENES)
     + ["kitti", "pair"]
 )
@@ -119,16 +134,21 @@ def verdict(row: dict) -> dict:
 
 
 # ------------------------------------------------------------------ data
-def rewrite_bag(src_bag: Path, out: Path, variant: str, seed: int = 0) -> tuple[Path, Path]:
+def rewrite_bag(
+    src_bag: Path, out: Path, variant: str, seed: int = 0, gt: Path | None = None
+) -> tuple[Path, Path]:
     """The bag ``src_bag`` rewritten as a ``variant`` (see the module doc), and a .npy of
-    (new stamp, true stamp) of its messages (for the association with the ground truth)."""
-    from slam.io.bag_writer import write_pointcloud_bag
+    (header stamp, true stamp, record time) of its messages (the association with the
+    ground truth, whichever clock the run stamps with). ``still10`` also writes
+    ``out``.gt.tum: the ground truth ``gt`` with the 10 s of standing in front."""
     from slam.io.source import open_source
     from slam.types import Scan
 
     scans = [s for s in open_source(src_bag) if isinstance(s, Scan)]
     rng = np.random.default_rng(seed)
     true = {id(s): float(s.stamp) for s in scans}
+    t_sorted = sorted(true.values())
+    gap_at, jump_at = min(GAP_AT, len(scans) // 3), min(JUMP_AT, len(scans) // 2)
     layout = "velodyne"
     if variant == "strip":
         layout = "xyzi"
@@ -137,6 +157,8 @@ def rewrite_bag(src_bag: Path, out: Path, variant: str, seed: int = 0) -> tuple[
             s.stamp = float(s.stamp) + float(rng.uniform(-0.02, 0.02))
     elif variant == "drop5":
         scans = [s for i, s in enumerate(scans) if i % 5 != 4]
+    elif variant == "gap20":  # the driver or the recorder stalled for 2 s
+        scans = [s for i, s in enumerate(scans) if not gap_at <= i < gap_at + 20]
     elif variant == "swap":
         for k in range(0, len(scans) - 1, 10):
             scans[k], scans[k + 1] = scans[k + 1], scans[k]
@@ -144,26 +166,80 @@ def rewrite_bag(src_bag: Path, out: Path, variant: str, seed: int = 0) -> tuple[
         t0, t1 = scans[0].stamp, scans[-1].stamp
         for s in scans:
             s.stamp = t0 + (t1 - float(s.stamp))
+    elif variant == "zerostamps":  # a driver that never sets header.stamp
+        for s in scans:
+            s.stamp = 0.0
+    elif variant == "clockback":  # the sensor clock steps back 2.55 s (a PTP correction)
+        for s in scans[jump_at:]:
+            s.stamp = float(s.stamp) - 2.55  # not onto the earlier stamps: a unique match
+    elif variant == "glitch":  # one header stamp 100 s in the future
+        scans[jump_at].stamp = float(scans[jump_at].stamp) + 100.0
+    elif variant == "empty3":  # the driver starting up: three clouds without a point
+        for s in scans[:3]:
+            s.xyz, s.intensity, s.ring, s.time = (
+                np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.int16), np.zeros(0)
+            )  # fmt: skip
+    elif variant == "partial1":  # the first cloud holds only the sweep's last 36 degrees
+        s = scans[0]
+        az = np.arctan2(s.xyz[:, 1], s.xyz[:, 0])
+        scans[0] = s.select(az > np.pi * 0.8)
+        true[id(scans[0])] = true[id(s)]
+    elif variant == "nan30":  # an organised driver: 30 % of the points are NaN (no return)
+        for s in scans:
+            s.xyz = s.xyz.copy()
+            s.xyz[rng.random(len(s)) < 0.3] = np.nan
+    elif variant == "still10":  # 10 s standing at the start (sensor noise 1 cm per scan)
+        first = scans[0]
+        lead = []
+        for k in range(STILL_SCANS, 0, -1):
+            c = first.select(np.arange(len(first)))
+            c.xyz = c.xyz + rng.normal(0.0, 0.01, c.xyz.shape)
+            c.stamp = float(first.stamp) - 0.1 * k
+            true[id(c)] = c.stamp
+            lead.append(c)
+        scans = lead + scans
+        t_sorted = sorted(true.values())
+        from slam.io.trajectory import read_tum, write_tum
+
+        stamps, poses = read_tum(gt)
+        pre = np.array([c.stamp for c in lead])
+        write_tum(
+            out.with_suffix(".gt.tum"),
+            np.r_[pre, stamps],
+            np.concatenate([np.repeat(poses[:1], len(pre), axis=0), poses]),
+        )
     else:
         raise ValueError(variant)
+    # the record time: when the recorder got the message (50-60 ms after its true stamp)
+    record = np.array(t_sorted[: len(scans)]) + 0.05 + rng.uniform(0.0, 0.01, len(scans))
+    if variant in ("drop5", "gap20"):
+        record = np.array(sorted(true[id(s)] for s in scans)) + 0.05
     stamp_map = out.with_suffix(".stamps.npy")
-    np.save(stamp_map, np.array([(float(s.stamp), true[id(s)]) for s in scans]))
-    if variant in ("swap", "reversed"):
-        # header stamps out of order, messages in their recorded (playback) order: the
-        # bag's record time is the playback order, not the header stamp
-        return _write_in_record_order(out, scans, layout), stamp_map
-    return write_pointcloud_bag(out, scans, layout=layout, overwrite=True), stamp_map
+    np.save(
+        stamp_map,
+        np.array([(float(s.stamp), true[id(s)], r) for s, r in zip(scans, record, strict=True)]),
+    )
+    return _write_in_record_order(out, scans, layout, record), stamp_map
 
 
-def _write_in_record_order(out: Path, scans: list, layout: str) -> Path:
+def _write_in_record_order(out: Path, scans: list, layout: str, record: np.ndarray) -> Path:
+    """The scans as a ROS1 bag in the given order: header stamp ``scan.stamp``, record time
+    ``record`` (s; the playback order)."""
     from slam.io.bag_writer import POINTCLOUD2, BagWriter
     from slam.io.pointcloud2 import encode_pointcloud2
 
     with BagWriter(out, "ros1", overwrite=True) as bag:
         bag.add_topic("/velodyne_points", POINTCLOUD2)
-        for seq, scan in enumerate(scans):
+        for scan, t in zip(scans, record, strict=True):
             msg = encode_pointcloud2(scan, bag.typestore, frame_id="velodyne", layout=layout)
-            bag.write("/velodyne_points", 1000.0 + 0.1 * seq, msg)
+            bag.write("/velodyne_points", float(t), msg)
+    return out
+
+
+def truncate_bag(src_bag: Path, out: Path, keep: float = 0.6) -> Path:
+    """The first ``keep`` of the bytes of ``src_bag`` (a recording killed: no index)."""
+    raw = Path(src_bag).read_bytes()
+    out.write_bytes(raw[: int(len(raw) * keep)])
     return out
 
 
@@ -179,10 +255,27 @@ def _sequence(case: str, frames: int | None, urban_frames: int | None) -> tuple[
     return Path(seq.bag), Path(seq.ground_truth)
 
 
+def true_stamps(stamp_map: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+    """The true stamps of a run's trajectory ``stamps`` from ``rewrite_bag``'s map: the
+    run stamped with the header or the record clock, whichever of the two columns its
+    stamps match (the nearest entry of it)."""
+    best = None
+    for col in (0, 2):
+        order = np.argsort(stamp_map[:, col], kind="stable")
+        ref = stamp_map[order, col]
+        k = np.clip(np.searchsorted(ref, stamps), 1, max(len(ref) - 1, 1))
+        k -= np.abs(ref[k - 1] - stamps) <= np.abs(ref[k] - stamps)  # the nearest
+        err = float(np.median(np.abs(ref[k] - stamps)))
+        if best is None or err < best[0]:
+            best = (err, stamp_map[order[k], 1])
+    return best[1]
+
+
 # ------------------------------------------------------------------ runs
 def _run(job: dict) -> dict:
     """One config on one input through the pipeline (in a fresh process)."""
     from slam.config import load_config
+    from slam.errors import InputError
     from slam.eval.metrics import evaluate
     from slam.run import run_one
 
@@ -190,13 +283,20 @@ def _run(job: dict) -> dict:
     if job.get("frames"):
         config.source.max_frames = job["frames"]
     out = Path(job["out"])
-    summary = run_one(Path(job["bag"]), config, out, quiet=True)
+    try:
+        summary = run_one(Path(job["bag"]), config, out, quiet=True)
+    except InputError as exc:  # what `slam run` reports as "error: ..." with exit 2
+        row = {"case": job["case"], "config": job["config"], "frames": 0}
+        return verdict({**row, "stopped_by": f"error: {exc}"})
     m = json.loads((out / "metrics.json").read_text())
     counts = m.get("frontend_counts") or {}
+    messages = summary["frames"] + m.get("messages_skipped", 0)
+    if job.get("stamp_map"):  # every message of the bag, also when the run stopped early
+        messages = len(np.load(job["stamp_map"]))
     row = {
         "case": job["case"],
         "config": job["config"],
-        "messages": summary["frames"] + m.get("messages_skipped", 0),
+        "messages": messages,
         "frames": summary["frames"],
         "skipped": m.get("messages_skipped", 0),
         "rejected": counts.get("rejected"),
@@ -208,13 +308,9 @@ def _run(job: dict) -> dict:
         if job.get("stamp_map"):  # evaluate at the true stamps of the messages
             from slam.io.trajectory import read_tum, write_tum
 
-            pairs = np.load(job["stamp_map"])
-            order = np.argsort(pairs[:, 0])
             stamps, poses = read_tum(est)
-            new, old = pairs[order, 0], pairs[order, 1]
-            k = np.clip(np.searchsorted(new, stamps), 1, len(new) - 1)
-            k -= np.abs(new[k - 1] - stamps) < np.abs(new[k] - stamps)  # the nearest
-            write_tum(out / "trajectory_true_stamps.tum", old[k], poses)
+            true = true_stamps(np.load(job["stamp_map"]), stamps)
+            write_tum(out / "trajectory_true_stamps.tum", true, poses)
             est = out / "trajectory_true_stamps.tum"
         res = evaluate(est, Path(job["gt"]))
         st = step_errors(res.est_poses, res.gt_poses)
@@ -285,8 +381,8 @@ def _fmt(v, digits=3):
 def table(rows: list[dict]) -> str:
     lines = [
         "| data | front end | frames / msgs | skipped | rejected / lost | APE RMSE (m) "
-        "| APE % path | max step err (m) | max stop drift (m) (stops) | ran away |",
-        "|" + "---|" * 10,
+        "| APE % path | max step err (m) | max stop drift (m) (stops) | ran away | stopped |",
+        "|" + "---|" * 11,
     ]
     for r in rows:
         lines.append(
@@ -295,7 +391,7 @@ def table(rows: list[dict]) -> str:
             f"| {_fmt(r.get('ape_rmse'))} | {_fmt(r.get('ape_pct'), 2)} "
             f"| {_fmt(r.get('step_err_max'))} "
             f"| {_fmt(r.get('stop_drift_max'))} ({_fmt(r.get('stops'))}) "
-            f"| {r.get('ran_away') or 'no'} |"
+            f"| {r.get('ran_away') or 'no'} | {(r.get('stopped_by') or '-')[:STOP_TEXT]} |"
         )
     return "\n".join(lines)
 
@@ -340,8 +436,12 @@ def main() -> None:
                 bag, gt = _sequence(case, args.frames, urban_frames)
                 variant = case.split("-", 1)[1] if case.startswith("urban-") else ""
                 if variant in VARIANTS:
-                    bag, stamp_map = rewrite_bag(bag, tmp / f"{case}.bag", variant)
+                    bag, stamp_map = rewrite_bag(bag, tmp / f"{case}.bag", variant, gt=gt)
                     base["stamp_map"] = str(stamp_map)
+                    if variant == "still10":
+                        gt = bag.with_suffix(".gt.tum")
+                elif variant == "truncated":
+                    bag = truncate_bag(bag, tmp / f"{case}.bag")
                 base.update(bag=str(bag), gt=str(gt))
             for c in args.configs:
                 run({**base, "config": c, "out": str(tmp / f"{case}-{c}")})

@@ -45,6 +45,13 @@ class SourceConfig:
     yes for bags, no for KITTI and PCD/PLY folders, whose scans KITTI publishes already
     motion-compensated (on the real KITTI-raw scans every time hypothesis raised the
     registration residual: 0.0265 m without, 0.0285 with); "always" / "never" force it.
+    stamps: the clock that stamps a scan (slam.io.stamps). "header": the driver's header
+    stamp; "record": the bag's record time (bags only); "auto": the header stamp unless it
+    does not increase over the first 10 messages (running backwards, all equal), then the
+    record time with one warning; neither increasing stops the run (exit 2) saying so.
+    reorder_window: scans held and released in stamp order in front of the pipeline, so
+    that messages recorded a few places out of order are kept (0 = off); a stamp still
+    out of order after it is skipped and counted.
     """
 
     topic: str | None = None
@@ -53,8 +60,16 @@ class SourceConfig:
     strict: bool = False
     beam_scans: int = 3
     layout_time: str = "auto"
+    stamps: str = "auto"
+    reorder_window: int = 4
 
     def __post_init__(self) -> None:
+        if self.stamps not in ("auto", "header", "record"):
+            raise ConfigError(
+                f"source.stamps must be one of auto, header, record, got {self.stamps!r}"
+            )
+        if self.reorder_window < 0:
+            raise ConfigError(f"source.reorder_window must be >= 0, got {self.reorder_window}")
         if self.layout_time not in LAYOUT_TIME:
             raise ConfigError(
                 f"source.layout_time must be one of {', '.join(LAYOUT_TIME)}, "

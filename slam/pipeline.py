@@ -13,6 +13,7 @@ from array import array
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -22,11 +23,15 @@ from slam.config import SlamConfig
 from slam.errors import BackendError, ConfigError, InputError, SlamError
 from slam.factors import GraphView, key, pose3
 from slam.interrupts import StopRequest
+from slam.io.stamps import Reorder
 from slam.types import Keyframe, Scan, SkippedMessage
 
 log = logging.getLogger(__name__)
 
 MEMORY_REFERENCE_FRAME = 100  # frames after which the map, models and kernels are warm
+# this many scans in a row whose stamps are not after the last kept one stop the run (bad
+# input): the rest of the input would be dropped, a useless trajectory without an error
+STAMP_RUN_LIMIT = 10
 
 
 @dataclass
@@ -89,6 +94,9 @@ class RunState:
     # peak from there per km travelled is metrics.json's memory_mb_per_km
     memory_reference: tuple[float, float] | None = None
     skipped_frames: int = 0  # frames the front end could not register (prediction kept)
+    # (message index, s added to its and every later stamp) where the stamps' clock stepped
+    # back and the run went on on its own clock
+    clock_steps: list[tuple[int, float]] = field(default_factory=list)
     skipped_messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     degenerate_frames: int = 0
     loops_closed: int = 0
@@ -183,6 +191,14 @@ class Pipeline:
         self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
         self._frame_stages_cpu: dict[str, float] = {}  # CPU seconds of the same
         self._backend_failed = False  # an update failed: the run stops, outputs are written
+        # scans not after the last kept one, in a row, with that last stamp: skipped when a
+        # scan in order comes, or the clock stepped back (STAMP_RUN_LIMIT of them)
+        self._held_back: list[tuple[Scan, float]] = []
+        self._offset = 0.0  # s added to every stamp since the clock stepped back
+        self._notes: list[str] | None = None  # the source's notes (a clock step is noted)
+        self._clock = config.source.stamps  # "auto" | "header" | "record"
+        self._has_record = False  # the source has a second clock (bags: the record time)
+        self._reorder: Reorder | None = None  # the reorder buffer in front of the run
         self.view = GraphView(self.state.keyframes, self._estimate)
 
     # ------------------------------------------------------------------ graph view
@@ -404,21 +420,122 @@ class Pipeline:
         st.skipped_messages[item.reason] += 1
 
     def _consume(self, item: Scan | SkippedMessage, strict: bool) -> None:
-        """One input item: a damaged message or a stamp not after the last is skipped."""
-        st = self.state
+        """One input item: a damaged message is skipped; a scan whose stamp is not after the
+        last one is held back until the next scan in order (then skipped) or until
+        STAMP_RUN_LIMIT of them in a row show that the clock stepped back."""
         if isinstance(item, SkippedMessage):
             self._skip(item, strict)
             return
-        last = self._buffer[-1].stamp if self._buffer else (st.stamps[-1] if st.stamps else None)
+        if self._offset:
+            item.stamp = float(item.stamp) + self._offset
+        self._place(item, strict)
+
+    def _place(self, item: Scan, strict: bool) -> None:
+        """A scan on the run's clock: fed on, or held back when not after the last one."""
+        last = self._last_stamp()
         if last is not None and not float(item.stamp) > last:
-            kind = "duplicated stamp" if item.stamp == last else "stamp out of order"
-            detail = (
-                f"stamp {item.stamp:.9f} s is not after the previous scan's {last:.9f} s"
-                " (dropped: the trajectory is never written out of order)"
-            )
-            self._skip(SkippedMessage(item.index, kind, detail), strict)
+            if strict:
+                self._skip(self._out_of_order(item, last), strict)
+            self._held_back.append((item, last))
+            if len(self._held_back) >= STAMP_RUN_LIMIT:
+                self._clock_stepped_back()
             return
+        self._settle_held_back()
         self._feed(item)
+
+    def _last_stamp(self) -> float | None:
+        st = self.state
+        return self._buffer[-1].stamp if self._buffer else (st.stamps[-1] if st.stamps else None)
+
+    @staticmethod
+    def _out_of_order(item: Scan, last: float) -> SkippedMessage:
+        kind = "duplicated stamp" if item.stamp == last else "stamp out of order"
+        detail = (
+            f"stamp {item.stamp:.9f} s is not after the previous scan's {last:.9f} s"
+            " (dropped: the trajectory is never written out of order)"
+        )
+        return SkippedMessage(item.index, kind, detail)
+
+    def _settle_held_back(self) -> None:
+        """The scans held back were out of order: skipped and counted."""
+        for scan, last in self._held_back:
+            self._skip(self._out_of_order(scan, last), False)
+        self._held_back = []
+
+    def _clock_stepped_back(self) -> None:
+        """STAMP_RUN_LIMIT scans in a row not after the last kept one. When their stamps go
+        on at the sweep period, the clock stepped back (a PTP/NTP correction, a driver that
+        restarted its clock): unless ``source.stamps`` is "header" (stamps exactly as
+        recorded), every scan from there on is stamped on the run's clock (the step added,
+        one warning), the held scans included. Else, or forced, the run stops (bad input)."""
+        run = [scan for scan, _ in self._held_back]
+        t = np.array([scan.stamp for scan in run])
+        step = np.diff(t)
+        steady = bool(np.all(step > 0) and 0.5 < np.median(step) / self._period < 1.5)
+        if not steady or self._clock in ("header", "record"):
+            raise InputError(self._stamps_gone_wrong(self._held_back[-1][1], steady))
+        # the reorder buffer holds the scans recorded before the step (after the last kept
+        # one) and maybe some after it: those before go first, as they are
+        last = self._last_stamp()
+        held = self._reorder.drain() if self._reorder is not None else []
+        before = [scan for scan in held if scan.stamp > last]
+        later = [scan for scan in held if not scan.stamp > last]
+        for scan in before:
+            self._feed(scan)
+        last = self._last_stamp()
+        offset = last + self._period - float(t[0])
+        self._offset += offset
+        log.warning(
+            "the clock of the stamps stepped back by %.3f s at message %d (%.9f s after "
+            "%.9f s): this and every later scan is stamped %.3f s later, on the clock of the "
+            "scans before (set source.stamps=header to stop instead)",
+            offset - self._period, run[0].index, t[0], last, offset,
+        )  # fmt: skip
+        self.state.clock_steps.append((run[0].index, offset))
+        for scan in later:
+            scan.stamp = float(scan.stamp) + self._offset
+        for scan in run:
+            scan.stamp = float(scan.stamp) + offset
+        self._held_back = []
+        if self._notes is not None:
+            self._notes.append(
+                f"the clock of the stamps stepped back by {offset - self._period:.3f} s at "
+                f"message {run[0].index}: the scans from there on are stamped {offset:.3f} s "
+                "later than their header stamps"
+            )
+        for scan in sorted(run + later, key=lambda s: s.stamp):
+            self._place(scan, False)
+
+    def _stamps_gone_wrong(self, last: float, steady: bool) -> str:
+        """The message of a run stopped by STAMP_RUN_LIMIT stamps in a row not after ``last``
+        (``steady``: they go on at the sweep period, the run was told to keep them as is)."""
+        run = [(scan.index, float(scan.stamp)) for scan, _ in self._held_back]
+        (i0, t0), (i1, t1) = run[0], run[-1]
+        n = len(run)
+        if t0 == t1 == last:
+            how = f"all equal the last kept scan's ({last:.9f} s): the stamps are not set?"
+        else:
+            how = (
+                f"all before the last kept scan's ({last:.9f} s; the first one by "
+                f"{last - t0:.3f} s): "
+            )
+            how += (
+                f"the clock stepped back and source.stamps={self._clock} takes them as they are."
+                if steady
+                else "and not at the sweep period: the clock is broken?"
+            )
+        if self._clock == "record":
+            advice = "the bag's record times repeat: try --set source.stamps=header"
+        elif steady:
+            advice = "--set source.stamps=auto goes on across the step"
+        elif self._has_record:
+            advice = "use the bag's record time instead: --set source.stamps=record"
+        else:
+            advice = "give the input increasing stamps"
+        return (
+            f"the stamps of the last {n} messages ({i0} to {i1}) are {how} Every further "
+            f"scan would be dropped, so the run stops here; {advice}"
+        )
 
     def run(
         self,
@@ -432,33 +549,51 @@ class Pipeline:
         """Process ``scans`` until exhausted, ``max_frames``, Ctrl-C or unreadable input.
 
         ``start``: the index of the first input message used (messages before it are read
-        and ignored). A :class:`SkippedMessage` (damaged message, no finite point) and a scan
-        whose stamp is not after the previous one (duplicated, out of order) cost that frame
+        and ignored). The source stamps with the clock ``source.stamps`` picks (bags: header
+        stamp or record time, ``slam.io.stamps``); ``source.reorder_window`` scans are held
+        and released in stamp order, so that messages recorded a few places out of order are
+        kept. A :class:`SkippedMessage` (damaged message, no finite point) and a scan whose
+        stamp is still not after the previous one (duplicated, out of order) cost that frame
         only: counted by reason in ``state.skipped_messages``; with ``strict`` the first one
-        stops the run like unreadable input. Ctrl-C (SIGINT, when Python's default handler is
+        stops the run like unreadable input, and so do STAMP_RUN_LIMIT of them in a row
+        without ``strict`` (a clock gone back: the rest of the input would be dropped).
+        Ctrl-C (SIGINT, when Python's default handler is
         in place) stops the loop after the frame in hand, a second one at once; a
         KeyboardInterrupt or an InputError from the source stops the loop; the state so far
         is finalised (``state.stopped_by`` says why). Never loses computed frames.
         """
         st = self.state
-        if self.config.source.layout_time == "auto":
+        src = self.config.source
+        if src.layout_time == "auto":
             self._layout_time = not getattr(scans, "motion_compensated", False)
+        notes = getattr(scans, "notes", None)
+        self._notes = notes if isinstance(notes, list) else None
+        use_stamps = getattr(scans, "use_stamps", None)  # bags: header or record time
+        self._has_record = callable(use_stamps)
+        self._clock = src.stamps
+        if callable(use_stamps):
+            use_stamps(src.stamps, src.reorder_window)
+        elif src.stamps == "record":
+            raise InputError(
+                "source.stamps=record: only bags have a record time; this input's stamps "
+                "are its own (use source.stamps auto or header)"
+            )
         began = time.perf_counter()
         try:
             with StopRequest() as stop:  # Ctrl-C: stop after the frame in hand
-                for i, item in enumerate(scans):
-                    if i < start:
-                        continue
+                self._reorder = Reorder(islice(scans, start, None), src.reorder_window)
+                for n, item in enumerate(self._reorder, 1):
                     if max_frames is not None and st.frames + len(self._buffer) >= max_frames:
                         break
                     self._consume(item, strict)
                     if on_frame is not None:
-                        on_frame(i + 1 - start)  # messages consumed (frames and skipped ones)
+                        on_frame(n)  # messages consumed (frames and skipped ones)
                     if stop.requested:
                         break
                 if stop.requested:
                     st.stopped_by = "interrupted (Ctrl-C)"
                 else:
+                    self._settle_held_back()  # out-of-order scans at the very end
                     self._flush()  # a source shorter than the beam-model window
         except KeyboardInterrupt:
             st.stopped_by = "interrupted (Ctrl-C)"
@@ -468,6 +603,7 @@ class Pipeline:
             st.stopped_by = "interrupted (Ctrl-C)"
         except InputError as exc:
             st.stopped_by = f"bad input: {exc}"
+            self._flush_held()
         except BackendError as exc:
             log.error("back end failed at keyframe %d: %s", len(st.keyframes) - 1, exc)
             st.stopped_by = f"back end failed: {exc}"
@@ -475,6 +611,23 @@ class Pipeline:
             st.wall_seconds += time.perf_counter() - began
             self.finish()
         return st
+
+    def _flush_held(self) -> None:
+        """The scans held (reorder buffer, beam model), processed after the input stopped
+        with an error (a truncated bag, stamps gone wrong): read frames are not lost."""
+        try:
+            for scan in self._reorder.drain() if self._reorder is not None else []:
+                scan.stamp = float(scan.stamp) + self._offset
+                last = self._last_stamp()
+                if last is None or scan.stamp > last:
+                    self._feed(scan)
+            self._settle_held_back()
+            self._flush()
+        except KeyboardInterrupt:
+            st = self.state
+            st.stopped_by = st.stopped_by or "interrupted (Ctrl-C)"
+        except BackendError as exc:
+            log.error("back end failed at keyframe %d: %s", len(self.state.keyframes) - 1, exc)
 
     def _flush_factor_sources(self) -> None:
         """Factors a plugin still holds at the end (``flush(graph)``, e.g. loops verified in

@@ -159,15 +159,41 @@ def test_empty_bag(tmp_path, fmt):
         open_source(path)
 
 
-@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
-def test_truncated_bag(tmp_path, fmt):
-    path = write_pointcloud_bag(bag_name(tmp_path, fmt), scans(6, 2000), fmt=fmt)
-    data_file = path if fmt == "ros1" else next(path.glob("*.mcap"))
+def test_truncated_mcap_bag(tmp_path):
+    path = write_pointcloud_bag(bag_name(tmp_path, "mcap"), scans(6, 2000), fmt="mcap")
+    data_file = next(path.glob("*.mcap"))
     raw = data_file.read_bytes()
     data_file.write_bytes(raw[: len(raw) // 2])
     with pytest.raises(InputError, match="truncated or corrupt") as err:
         list(open_source(path))
     assert not isinstance(err.value, TopicError)
+
+
+@pytest.mark.parametrize("name", ["cut.bag", "rec.bag.active"])
+def test_ros1_bag_without_index_is_read_record_by_record(tmp_path, name):
+    """A ROS1 bag cut short (its index at the end gone) or a killed recording (.bag.active):
+    rosbags cannot open it; every complete message before the cut is read, noted once."""
+    ref = scans(6, 2000)
+    full = write_pointcloud_bag(tmp_path / "full.bag", ref)
+    raw = full.read_bytes()
+    path = tmp_path / name
+    path.write_bytes(raw[: len(raw) // 2])
+    src = open_source(path)
+    got = []
+    with pytest.raises(InputError, match="is cut short: read error at byte") as err:
+        for s in src:  # then the error of the cut: the caller stops, keeps what it has
+            got.append(s)
+    assert "the 2 messages on /velodyne_points before the cut were read" in str(err.value)
+    assert len(src) == len(got) == 2  # the cut falls inside the third message (of 6)
+    for s, r in zip(got, ref, strict=False):
+        assert s.stamp == pytest.approx(r.stamp, abs=1e-6)
+        np.testing.assert_allclose(s.xyz, r.xyz, atol=4e-6)
+        np.testing.assert_array_equal(s.ring, r.ring)
+    assert len(src.notes) == 1 and "no usable index" in src.notes[0]
+    assert "read record by record, 2 messages, up to byte" in src.notes[0]
+    (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 50)
+    with pytest.raises(InputError, match="record by record failed too"):
+        open_source(tmp_path / "junk.bag")
 
 
 def test_corrupt_message_in_the_middle_names_index(tmp_path):
@@ -256,3 +282,43 @@ def test_messy_bag_costs_one_frame_per_bad_message(tmp_path, fmt):
     np.testing.assert_allclose(got[5].xyz, ref[5].xyz, atol=4e-6)
     assert got[5].ring is None and got[0].ring is not None and got[5].time is not None
     assert len(src.notes) == 1 and "'ring' has unknown datatype 99" in src.notes[0]
+
+
+def _stamped_bag(path, header, record):
+    """A ROS1 bag of small scans with these header stamps and record times (s)."""
+    with Writer1(path) as w:
+        c = w.add_connection("/velodyne_points", PC2, typestore=TS1)
+        for s, h, r in zip(scans(len(header), 20), header, record, strict=True):
+            s.stamp = float(h)
+            w.write(c, int(round(r * 1e9)), TS1.serialize_ros1(encode_pointcloud2(s, TS1), PC2))
+    return path
+
+
+def test_the_clock_of_the_stamps(tmp_path):
+    """auto: the header stamps, unless they run backwards: then the record time, noted;
+    header / record force one; neither clock increasing is an InputError saying so."""
+    t = 1_600_000_000.0 + 0.1 * np.arange(12)
+    rec = t + 0.05
+    back = _stamped_bag(tmp_path / "back.bag", t[::-1], rec)
+    src = open_source(back)
+    assert [s.stamp for s in src] == pytest.approx(t[::-1], abs=1e-6)  # default: header
+    src.use_stamps("auto", 4)
+    assert [s.stamp for s in src] == pytest.approx(rec, abs=1e-6)
+    assert len(src.notes) == 1 and "scans stamped with the bag's record time" in src.notes[0]
+    assert "run backwards" in src.notes[0]
+    src.use_stamps("header")
+    assert [s.stamp for s in src] == pytest.approx(t[::-1], abs=1e-6)
+    swapped = t.copy()
+    swapped[[0, 1, 6, 7]] = swapped[[1, 0, 7, 6]]  # recorded out of order: the buffer's job
+    src = open_source(_stamped_bag(tmp_path / "swap.bag", swapped, rec))
+    src.use_stamps("auto", 4)
+    assert [s.stamp for s in src] == pytest.approx(swapped, abs=1e-6)
+    src.use_stamps("auto", 0)  # without a buffer 2 of 12 drop: still 3 in 4 in order
+    assert [s.stamp for s in src] == pytest.approx(swapped, abs=1e-6) and not src.notes
+    unset = _stamped_bag(tmp_path / "unset.bag", np.zeros(12), np.full(12, 5.0))
+    src = open_source(unset)
+    src.use_stamps("auto", 4)
+    with pytest.raises(InputError, match="are all 0.000000000 s .the driver does not set") as e:
+        list(src)
+    assert "neither clock can order the scans" in str(e.value)
+    assert "--set source.stamps=header" in str(e.value)

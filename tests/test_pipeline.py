@@ -111,14 +111,18 @@ def _interrupt_in_compiled_code() -> SystemError:
     ],
 )
 def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
+    """Bad input (a truncated bag) first processes the scans the reorder buffer holds;
+    Ctrl-C does not: those were read, not computed, and an abort is at once."""
     poses = circle_odometry(n=40)
     pipe = make_pipeline(poses)
     st = pipe.run(scans(40, stop_with=stop, at=25))
-    assert st.frames == 25 and st.stopped_by.startswith(reason)
+    held = 0 if reason == "bad input" else pipe.config.source.reorder_window
+    n = 25 - held
+    assert held in (0, 4) and st.frames == n and st.stopped_by.startswith(reason)
     written = write_outputs(pipe, tmp_path, resolved_config=resolved_config(pipe.config))
     stamps, traj = read_tum(written["trajectory.tum"])
-    assert len(stamps) == 25
-    assert np.abs(traj[:, :3, 3] - poses[:25, :3, 3]).max() < 1e-6
+    assert len(stamps) == n
+    assert np.abs(traj[:, :3, 3] - poses[:n, :3, 3]).max() < 1e-6
     for name in ("odometry.tum", "trajectory.kitti", "metrics.json", "config.yaml", "map.pcd"):
         assert (tmp_path / name).stat().st_size > 0
     # the map holds the keyframes seen before the stop (streamed from their clouds)
@@ -320,3 +324,88 @@ def test_a_back_end_failure_stops_the_run_and_keeps_every_frame(tmp_path):
     # keyframes 0-11 from the batch re-optimisation, keyframe 12 from its odometry pose
     assert np.abs(traj[:, :3, 3] - poses[: st.frames, :3, 3]).max() < 1e-6
     assert json.loads((tmp_path / "metrics.json").read_text())["stopped_by"].startswith("back")
+
+
+def _stamped(stamps) -> list[Scan]:
+    return [Scan(stamp=float(t), xyz=np.zeros((1, 3)), index=i) for i, t in enumerate(stamps)]
+
+
+def test_scans_recorded_out_of_order_are_put_back_in_order():
+    """Every 10th pair of messages swapped: the reorder buffer keeps all of them, each with
+    the pose of its stamp; one 6 places late (beyond the 4 held) is dropped and counted."""
+    poses = circle_odometry(n=40)
+    order = np.arange(40)
+    for k in range(0, 39, 10):
+        order[[k, k + 1]] = order[[k + 1, k]]
+    items = [_stamped(100.0 + 0.1 * np.arange(40))[i] for i in order]
+    st = make_pipeline(poses).run(items)
+    assert st.frames == 40 and st.messages_skipped == 0
+    np.testing.assert_array_equal(st.stamps, 100.0 + 0.1 * np.arange(40))
+    assert np.abs(st.trajectory()[:, :3, 3] - poses[:, :3, 3]).max() < 1e-6
+    late = list(range(40))
+    late.insert(26, late.pop(20))  # message 20 recorded after 25
+    st = make_pipeline(poses).run([_stamped(100.0 + 0.1 * np.arange(40))[i] for i in late])
+    assert st.frames == 39 and dict(st.skipped_messages) == {"stamp out of order": 1}
+    assert 100.0 + 0.1 * 20 not in st.stamps
+    off = make_pipeline(poses)
+    off.config.source.reorder_window = 0  # without the buffer every swapped pair costs one
+    assert off.run(items).frames == 36
+
+
+def test_one_stamp_far_ahead_costs_that_scan_only():
+    """One glitched stamp 100 s ahead: before the buffer every later scan was dropped; now
+    the scans recorded after it overtake it and it alone is skipped."""
+    poses = circle_odometry(n=40)
+    stamps = 100.0 + 0.1 * np.arange(40)
+    stamps[12] += 100.0
+    st = make_pipeline(poses).run(_stamped(stamps))
+    assert st.frames == 39 and dict(st.skipped_messages) == {"stamp out of order": 1}
+    np.testing.assert_array_equal(st.stamps, np.delete(stamps, 12))
+    assert np.abs(st.trajectory()[:, :3, 3] - np.delete(poses, 12, axis=0)[:, :3, 3]).max() < 1e-6
+
+
+def test_a_clock_stepping_back_is_followed_or_stops_the_run():
+    """The clock steps back 5 s at message 20 and goes on at the sweep period (a PTP
+    correction, a driver restarting its clock): before, every later scan was dropped. Now
+    the scans from there on are stamped on the run's clock (one period after the last
+    before the step) and all 40 kept; with source.stamps=header the run stops as bad input
+    saying what to do. Stamps not at the sweep period (all equal, unset) stop it too."""
+    poses = circle_odometry(n=40)
+    stamps = 100.0 + 0.1 * np.arange(40)
+    stamps[20:] -= 5.0
+    notes: list[str] = []
+
+    class Source(list):
+        pass
+
+    src = Source(_stamped(stamps))
+    src.notes = notes
+    st = make_pipeline(poses).run(src)
+    assert st.frames == 40 and st.messages_skipped == 0 and st.stopped_by is None
+    np.testing.assert_allclose(st.stamps, 100.0 + 0.1 * np.arange(40), atol=1e-9)
+    assert st.clock_steps == [(20, pytest.approx(5.0))]
+    assert len(notes) == 1 and "stepped back by 4.900 s at message 20" in notes[0]
+    assert np.abs(st.trajectory()[:, :3, 3] - poses[:, :3, 3]).max() < 1e-6
+    pipe = make_pipeline(poses)
+    pipe.config.source.stamps = "header"
+    st = pipe.run(_stamped(stamps))
+    assert st.frames == 20 and st.skipped_messages["stamp out of order"] == 10
+    assert st.stopped_by.startswith("bad input: the stamps of the last 10 messages (20 to 29)")
+    assert "(101.500000000 s; the first one by 4.500 s): the clock stepped back" in st.stopped_by
+    assert "--set source.stamps=auto goes on across the step" in st.stopped_by
+    np.testing.assert_array_equal(st.stamps, stamps[:20])
+    st = make_pipeline(poses).run(_stamped(np.zeros(40)))  # a driver that never sets them
+    assert st.frames == 1 and st.skipped_messages["duplicated stamp"] == 10
+    assert "all equal the last kept scan's (0.000000000 s)" in st.stopped_by
+    # fewer than 10 in a row (a short burst of late messages) are skipped and the run goes on
+    stamps = 100.0 + 0.1 * np.arange(40)
+    stamps[20:29] -= 5.0
+    st = make_pipeline(poses).run(_stamped(stamps))
+    assert st.frames == 31 and st.stopped_by is None and st.messages_skipped == 9
+
+
+def test_the_record_clock_needs_a_bag():
+    pipe = make_pipeline(circle_odometry(n=5))
+    pipe.config.source.stamps = "record"
+    with pytest.raises(InputError, match="only bags have a record time"):
+        pipe.run(scans(5))

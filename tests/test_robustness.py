@@ -3,6 +3,7 @@ them, the ran-away rule, and the degraded bags it writes (no ring/time, jittered
 dropped messages) read back as intended."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
@@ -71,3 +72,105 @@ def test_degraded_bags(tmp_path, corridor_short):
     drop = np.array([s.stamp for s in open_source(bag) if isinstance(s, Scan)])
     assert len(drop) == len(clean) - len(clean) // 5
     assert np.allclose(drop, np.delete(true, np.arange(4, len(true), 5)), atol=1e-6)
+
+
+def _run(bag, out, *extra):
+    from slam.cli import main
+
+    return main(["run", str(bag), "--out", str(out), "--quiet", "--max-frames", "30", *extra])
+
+
+def test_swapped_and_reversed_stamps_keep_every_frame(tmp_path, corridor_short, capsys, caplog):
+    """urban-swap / urban-reversed in small: a bag with every 10th pair of messages recorded
+    swapped keeps all 30 frames with the clean bag's poses (before: 3 dropped); a bag whose
+    header stamps run backwards is stamped with the record time, one warning, all 30 frames
+    (before: 1 frame, exit 0); forcing the header stamps on it stops with exit 2 and says
+    what to do."""
+    from slam.eval.metrics import evaluate
+    from slam.io.trajectory import read_tum, write_tum
+
+    assert _run(corridor_short.bag, tmp_path / "clean") == 0
+    s0, t0 = read_tum(tmp_path / "clean" / "trajectory.tum")
+    bag, _ = robustness.rewrite_bag(corridor_short.bag, tmp_path / "swap.bag", "swap")
+    assert _run(bag, tmp_path / "swap") == 0
+    s1, t1 = read_tum(tmp_path / "swap" / "trajectory.tum")
+    np.testing.assert_array_equal(s1, s0)
+    assert np.abs(t1[:, :3, 3] - t0[:, :3, 3]).max() < 1e-3
+    capsys.readouterr()
+    bag, stamp_map = robustness.rewrite_bag(corridor_short.bag, tmp_path / "rev.bag", "reversed")
+    assert _run(bag, tmp_path / "rev") == 0
+    err = capsys.readouterr().err
+    warned = [r for r in caplog.records if r.levelname == "WARNING" and "backwards" in r.message]
+    assert len(warned) == 1 and err.count("note: scans stamped with the bag's record time") == 1
+    s2, t2 = read_tum(tmp_path / "rev" / "trajectory.tum")
+    pairs = np.load(stamp_map)
+    assert len(s2) == 30 and np.allclose(s2, pairs[:30, 2], atol=1e-6)  # the record time
+    assert np.abs(t2[:, :3, 3] - t0[:, :3, 3]).max() < 0.01
+    write_tum(tmp_path / "rev_true.tum", robustness.true_stamps(pairs, s2), t2)
+    ape_clean = evaluate(tmp_path / "clean" / "trajectory.tum", corridor_short.ground_truth)
+    ape_rev = evaluate(tmp_path / "rev_true.tum", corridor_short.ground_truth)
+    assert ape_rev.ape_trans["rmse"] < 1.1 * ape_clean.ape_trans["rmse"] + 0.005
+    m = json.loads((tmp_path / "rev" / "metrics.json").read_text())
+    assert m["frames"] == 30 and "record time" in m["input_notes"][0]
+    assert _run(bag, tmp_path / "forced", "--set", "source.stamps=header") == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "--set source.stamps=record" in err
+    # what the header stamps can order: the first 5 messages (the 4 held + 1), backwards
+    assert len(read_tum(tmp_path / "forced" / "trajectory.tum")[0]) == 5
+
+
+def test_stamp_and_start_up_variants(tmp_path, corridor_short):
+    """The sweep's stamp variants and start-up variants read back as intended."""
+    clean = [s for s in open_source(corridor_short.bag) if isinstance(s, Scan)]
+    true = np.array([s.stamp for s in clean])
+    n = len(clean)
+
+    def read(variant):
+        bag, stamp_map = robustness.rewrite_bag(
+            corridor_short.bag, tmp_path / f"{variant}.bag", variant, gt=corridor_short.ground_truth
+        )
+        return [s for s in open_source(bag)], np.load(stamp_map)
+
+    got, pairs = read("zerostamps")
+    assert all(s.stamp == 0.0 for s in got) and np.all(np.diff(pairs[:, 2]) > 0)
+    assert np.all((pairs[:, 2] - true >= 0.05) & (pairs[:, 2] - true <= 0.06))  # record time
+    got, pairs = read("clockback")
+    stamps = np.array([s.stamp for s in got])
+    assert np.allclose(np.diff(stamps)[n // 2 - 1], 0.1 - 2.55, atol=1e-6)
+    got, _ = read("glitch")
+    assert np.allclose([s.stamp for s in got][n // 2], true[n // 2] + 100.0, atol=1e-6)
+    got, pairs = read("gap20")
+    assert len(got) == n - 20 and np.allclose(np.diff(pairs[:, 1])[n // 3 - 1], 2.1, atol=1e-6)
+    got, _ = read("empty3")
+    assert [type(s).__name__ for s in got[:4]] == ["SkippedMessage"] * 3 + ["Scan"]
+    got, _ = read("partial1")
+    az = np.degrees(np.arctan2(got[0].xyz[:, 1], got[0].xyz[:, 0]))
+    assert az.min() > 143.9 and len(got[0]) < 0.2 * len(clean[0])
+    got, _ = read("nan30")
+    assert 0.6 < len(got[3]) / len(clean[3]) < 0.8  # the NaN points are dropped on reading
+    got, pairs = read("still10")
+    assert len(got) == n + 100 and np.allclose(np.diff([s.stamp for s in got]), 0.1, atol=1e-6)
+    from slam.io.trajectory import read_tum
+
+    gt_stamps, gt_poses = read_tum(tmp_path / "still10.gt.tum")
+    assert len(gt_stamps) == 100 + len(read_tum(corridor_short.ground_truth)[0])
+    assert np.allclose(gt_poses[:101], gt_poses[100])  # standing, then the drive
+    jitter = np.abs(got[50].xyz - clean[0].xyz)
+    assert 0.005 < jitter.std() < 0.015
+
+
+def test_a_bag_cut_short_gives_every_frame_before_the_cut(tmp_path, corridor_short, capsys):
+    """urban-truncated in small: the bag cut at 60 % of its bytes (no index). Before: no
+    frame, "cannot open". Now: the frames of every complete message before the cut, then
+    exit 2 saying where the file ends (the outputs are written)."""
+    from slam.cli import main
+    from slam.io.trajectory import read_tum
+
+    bag = robustness.truncate_bag(corridor_short.bag, tmp_path / "cut.bag", keep=0.6)
+    assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "is cut short: read error at byte" in err and "Traceback" not in err
+    assert "the 36 messages on /velodyne_points before the cut were read" in err
+    stamps, _ = read_tum(tmp_path / "o" / "trajectory.tum")
+    clean = [s.stamp for s in open_source(corridor_short.bag)]
+    np.testing.assert_allclose(stamps, clean[:36], atol=1e-6)

@@ -5,7 +5,11 @@ topic; anything else raises TopicError listing the topics. A message that cannot
 deserialised or decoded is yielded as a SkippedMessage (its index, a reason, the detail)
 and reading goes on; a bag that cannot be opened, or whose record iterator itself fails
 (a truncated file), raises InputError naming the message index, so a caller can stop and
-still save what it computed.
+still save what it computed. A ROS1 bag without a usable index (a killed recording,
+``.bag.active``, or a file cut short) is read record by record instead
+(``slam.io.ros1_unindexed``): every complete message up to the cut, with a note, then
+the InputError of the cut.
+Scans are stamped with the header stamp or the record time (``BagSource.use_stamps``).
 """
 
 from __future__ import annotations
@@ -22,9 +26,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from slam.errors import InputError, TopicError
+from slam.io import ros1_unindexed
 from slam.io.pointcloud2 import decode_laserscan, decode_pointcloud2
 from slam.io.points import Notes
 from slam.io.skips import checked, skip
+from slam.io.stamps import with_clock
 from slam.types import Scan, SkippedMessage
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -47,7 +53,7 @@ class TopicSummary:
 def is_bag_path(path: Path) -> bool:
     """True for a ``.bag`` file, a ``.mcap`` file or a ROS2 bag directory."""
     if path.is_file():
-        return path.suffix in (".bag", ".mcap", ".db3")
+        return path.suffix in (".bag", ".mcap", ".db3") or _is_active(path)
     if path.is_dir():
         return (path / "metadata.yaml").is_file() or any(
             p.suffix in (".db3", ".mcap") for p in path.iterdir()
@@ -55,8 +61,21 @@ def is_bag_path(path: Path) -> bool:
     return False
 
 
+def _is_active(path: Path) -> bool:
+    """A ROS1 recording still open (or killed): ``rosbag record`` writes ``x.bag.active``."""
+    return path.name.endswith(".bag.active")
+
+
+def _is_ros1_file(path: Path) -> bool:
+    try:
+        with path.open("rb") as f:
+            return path.is_file() and f.read(len(ros1_unindexed.MAGIC)) == ros1_unindexed.MAGIC
+    except OSError:
+        return False
+
+
 def _bag_kind(path: Path) -> str:
-    if path.suffix == ".bag":
+    if path.suffix == ".bag" or _is_active(path):
         return "ROS1 bag"
     if path.suffix == ".mcap" or any(path.glob("*.mcap")):
         return "ROS2 mcap bag"
@@ -204,25 +223,62 @@ class BagSource:
 
     Iterating opens the bag anew, so a source can be iterated several times. ``notes``
     collects, once each, the degradations met so far (an optional field dropped, ...).
+    ``stamps``: the clock of ``Scan.stamp`` (``slam.io.stamps``): "header" (default),
+    "record" (the bag's record time) or "auto"; set with :meth:`use_stamps`.
     """
+
+    stamps: str = "header"
+    reorder_window: int = 0  # the reorder buffer behind this source ("auto" judges with it)
+
+    def use_stamps(self, mode: str, reorder_window: int = 0) -> None:
+        """Stamp scans with the ``mode`` clock ("auto" | "header" | "record")."""
+        self.stamps, self.reorder_window = mode, reorder_window
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         self.path = Path(path)
-        with open_reader(self.path) as reader:
-            if reader.message_count == 0:
-                raise InputError(f"{self.path} contains no messages")
-            self.topics = list_topics(reader)
+        self._notes = Notes()
+        self._unindexed: ros1_unindexed.Stats | None = None  # read record by record
+        try:
+            if _is_active(self.path):
+                raise InputError(f"{self.path}: a recording that was not closed (no index)")
+            with open_reader(self.path) as reader:
+                if reader.message_count == 0:
+                    raise InputError(f"{self.path} contains no messages")
+                self.topics = list_topics(reader)
+        except InputError as exc:
+            if not _is_ros1_file(self.path):
+                raise
+            self.topics = self._read_unindexed(exc)
         chosen = choose_topic(self.topics, topic, str(self.path))
         if chosen.count == 0:
             raise InputError(f"topic {chosen.name} in {self.path} contains no messages")
         self.topic: str | None = chosen.name
         self.msgtype = chosen.msgtype
         self._count = chosen.count
-        self._notes = Notes()
         self.description = (
             f"{_bag_kind(self.path)} {self.path}, topic {chosen.name} "
             f"({chosen.msgtype.rsplit('/', 1)[-1]}, {chosen.count} msgs)"
         )
+
+    def _read_unindexed(self, exc: InputError) -> list[TopicSummary]:
+        """The topics of a ROS1 bag rosbags cannot open (no index: a killed recording, a
+        file cut short), from reading it record by record; noted once."""
+        stats = ros1_unindexed.Stats()
+        counts: dict[tuple[str, str], int] = {}
+        try:
+            for topic, msgtype, _, _ in ros1_unindexed.read_messages(self.path, stats):
+                counts[(topic, msgtype)] = counts.get((topic, msgtype), 0) + 1
+        except Exception as err:  # noqa: BLE001 - then the first error is the one to report
+            raise InputError(f"{exc} (reading it record by record failed too: {err})") from exc
+        if not counts:
+            raise InputError(f"{exc} (reading it record by record found no message)") from exc
+        self._unindexed = stats
+        cut = f", up to byte {stats.end} of {stats.size} ({stats.stop})" if stats.stop else ""
+        self._notes.add(
+            f"{self.path} has no usable index (a recording that was not closed, or a file cut "
+            f"short): read record by record, {sum(counts.values())} messages{cut}"
+        )
+        return [TopicSummary(t, m, n) for (t, m), n in sorted(counts.items())]
 
     @property
     def notes(self) -> list[str]:
@@ -232,6 +288,18 @@ class BagSource:
         return self._count
 
     def __iter__(self) -> Iterator[Scan | SkippedMessage]:
+        if self.stamps == "header":
+            return (item for item, _ in self._messages())
+        where = f"{self.path} (topic {self.topic})"
+        return with_clock(
+            self._messages(), self.stamps, self.reorder_window, where, self._notes.add
+        )
+
+    def _messages(self) -> Iterator[tuple[Scan | SkippedMessage, float]]:
+        """(scan or skipped message, record time s) in record order."""
+        if self._unindexed is not None:
+            yield from self._unindexed_messages()
+            return
         decode = DECODERS[self.msgtype]
         with open_reader(self.path) as reader:
             conns = [c for c in reader.connections if c.topic == self.topic]
@@ -244,17 +312,44 @@ class BagSource:
                     raise self._bad(index, exc) from exc
                 if item is None:
                     return
-                conn, _, raw = item
+                conn, record_ns, raw = item
+                record = record_ns * 1e-9
                 where = f"{self.path} message {index} on {self.topic}"
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                     scan = decode(msg, index=index, notes=self._notes)
                     n_raw = len(msg.ranges) if self.msgtype == LASERSCAN else msg.height * msg.width
                 except Exception as exc:  # any decoding failure costs this message only
-                    yield skip(index, exc, where)
+                    yield skip(index, exc, where), record
                 else:
-                    yield checked(scan, int(n_raw), where)
+                    yield checked(scan, int(n_raw), where), record
                 index += 1
+
+    def _unindexed_messages(self) -> Iterator[tuple[Scan | SkippedMessage, float]]:
+        """The same from a ROS1 bag without index (``slam.io.ros1_unindexed``)."""
+        decode = DECODERS[self.msgtype]
+        typestore = get_typestore(Stores.ROS1_NOETIC)
+        index = 0
+        stats = ros1_unindexed.Stats()
+        for topic, msgtype, record_ns, raw in ros1_unindexed.read_messages(self.path, stats):
+            if topic != self.topic:
+                continue
+            where = f"{self.path} message {index} on {self.topic}"
+            try:
+                msg = typestore.deserialize_ros1(raw, msgtype)
+                scan = decode(msg, index=index, notes=self._notes)
+                n_raw = len(msg.ranges) if self.msgtype == LASERSCAN else msg.height * msg.width
+            except Exception as exc:  # any decoding failure costs this message only
+                yield skip(index, exc, where), record_ns * 1e-9
+            else:
+                yield checked(scan, int(n_raw), where), record_ns * 1e-9
+            index += 1
+        if stats.stop:  # what a truncated indexed bag gives too: the caller keeps the rest
+            raise InputError(
+                f"{self.path} is cut short: read error at byte {stats.end} of {stats.size} "
+                f"({stats.stop}; a copy that did not finish, a recording that was killed): "
+                f"the {index} messages on {self.topic} before the cut were read"
+            )
 
     def _bad(self, index: int, exc: Exception) -> InputError:
         return InputError(

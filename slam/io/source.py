@@ -29,7 +29,9 @@ class ScanSource(Protocol):
     values beyond int16, non-finite times) is dropped from the scan and the scan kept;
     ``notes`` lists each such degradation once. Only an input that cannot be read at all
     (missing file, bag that cannot be opened, a truncated bag whose record iterator fails)
-    raises InputError, from ``__init__`` or from the iteration.
+    raises InputError, from ``__init__`` or from the iteration. A source that has a second
+    clock (bags: the record time) also offers ``use_stamps(mode, reorder_window)``
+    (``slam.io.stamps``); the pipeline calls it with ``source.stamps``.
     """
 
     topic: str | None
