@@ -26,7 +26,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from slam.errors import InputError, TopicError
-from slam.io import ros1_unindexed
+from slam.io import mcap_unindexed, ros1_unindexed
 from slam.io.pointcloud2 import decode_laserscan, decode_pointcloud2
 from slam.io.points import Notes
 from slam.io.skips import checked, skip
@@ -64,6 +64,19 @@ def is_bag_path(path: Path) -> bool:
 def _is_active(path: Path) -> bool:
     """A ROS1 recording still open (or killed): ``rosbag record`` writes ``x.bag.active``."""
     return path.name.endswith(".bag.active")
+
+
+def _sequential_reader(path: Path) -> tuple[Path, Callable[..., Iterator], Any] | None:
+    """For a bag rosbags cannot open: (file, record-by-record reader, deserialize) when it
+    is a ROS1 bag file or a (folder with one) MCAP file whose end is missing, else None."""
+    if _is_ros1_file(path):
+        ts = get_typestore(Stores.ROS1_NOETIC)
+        return path, ros1_unindexed.read_messages, ts.deserialize_ros1
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    if len(files) == 1 and mcap_unindexed.is_cut(files[0]):
+        ts = get_typestore(Stores.ROS2_HUMBLE)
+        return files[0], mcap_unindexed.read_messages, ts.deserialize_cdr
+    return None
 
 
 def _is_ros1_file(path: Path) -> bool:
@@ -237,7 +250,8 @@ class BagSource:
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         self.path = Path(path)
         self._notes = Notes()
-        self._unindexed: ros1_unindexed.Stats | None = None  # read record by record
+        # (file, reader, deserialize) of a bag read record by record (no index / no end)
+        self._unindexed: tuple[Path, Callable[..., Iterator], Any] | None = None
         try:
             if _is_active(self.path):
                 raise InputError(f"{self.path}: a recording that was not closed (no index)")
@@ -246,7 +260,8 @@ class BagSource:
                     raise InputError(f"{self.path} contains no messages")
                 self.topics = list_topics(reader)
         except InputError as exc:
-            if not _is_ros1_file(self.path):
+            self._unindexed = _sequential_reader(self.path)
+            if self._unindexed is None:
                 raise
             self.topics = self._read_unindexed(exc)
         chosen = choose_topic(self.topics, topic, str(self.path))
@@ -265,15 +280,15 @@ class BagSource:
         file cut short), from reading it record by record; noted once."""
         stats = ros1_unindexed.Stats()
         counts: dict[tuple[str, str], int] = {}
+        file, read, _ = self._unindexed
         try:
-            for topic, msgtype, _, _ in ros1_unindexed.read_messages(self.path, stats):
+            for topic, msgtype, _, _ in read(file, stats):
                 counts[(topic, msgtype)] = counts.get((topic, msgtype), 0) + 1
         except Exception as err:  # noqa: BLE001 - then the first error is the one to report
             raise InputError(f"{exc} (reading it record by record failed too: {err})") from exc
         if not counts:
             raise InputError(f"{exc} (reading it record by record found no message)") from exc
-        self._unindexed = stats
-        cut = f", up to byte {stats.end} of {stats.size} ({stats.stop})" if stats.stop else ""
+        cut = f" (the file's {stats.size} bytes end {stats.stop})" if stats.stop else ""
         self._notes.add(
             f"{self.path} has no usable index (a recording that was not closed, or a file cut "
             f"short): read record by record, {sum(counts.values())} messages{cut}"
@@ -326,17 +341,18 @@ class BagSource:
                 index += 1
 
     def _unindexed_messages(self) -> Iterator[tuple[Scan | SkippedMessage, float]]:
-        """The same from a ROS1 bag without index (``slam.io.ros1_unindexed``)."""
+        """The same from a bag read record by record (``slam.io.ros1_unindexed``,
+        ``slam.io.mcap_unindexed``)."""
         decode = DECODERS[self.msgtype]
-        typestore = get_typestore(Stores.ROS1_NOETIC)
+        file, read, deserialize = self._unindexed
         index = 0
         stats = ros1_unindexed.Stats()
-        for topic, msgtype, record_ns, raw in ros1_unindexed.read_messages(self.path, stats):
+        for topic, msgtype, record_ns, raw in read(file, stats):
             if topic != self.topic:
                 continue
             where = f"{self.path} message {index} on {self.topic}"
             try:
-                msg = typestore.deserialize_ros1(raw, msgtype)
+                msg = deserialize(raw, msgtype)
                 scan = decode(msg, index=index, notes=self._notes)
                 n_raw = len(msg.ranges) if self.msgtype == LASERSCAN else msg.height * msg.width
             except Exception as exc:  # any decoding failure costs this message only
@@ -346,7 +362,7 @@ class BagSource:
             index += 1
         if stats.stop:  # what a truncated indexed bag gives too: the caller keeps the rest
             raise InputError(
-                f"{self.path} is cut short: read error at byte {stats.end} of {stats.size} "
+                f"{self.path} is cut short: read error at its end, byte {stats.size} "
                 f"({stats.stop}; a copy that did not finish, a recording that was killed): "
                 f"the {index} messages on {self.topic} before the cut were read"
             )

@@ -32,9 +32,9 @@ MAGIC = b"#ROSBAG V2.0\n"
 class Stats:
     """What a sequential read found: where it stopped and why (None: the file's end)."""
 
-    end: int = 0  # bytes of the file read as complete records
+    end: int = 0  # bytes of the file read as complete top-level records
     size: int = 0  # bytes of the file
-    stop: str | None = None
+    stop: str | None = None  # e.g. "inside a record"
 
 
 def _records(src: BinaryIO) -> Iterator[tuple[Header, bytes, bool]]:
@@ -68,7 +68,7 @@ def read_messages(
         for header, data, complete in _records(f):
             op = header.get_uint8("op")
             if not complete:
-                stats.stop = "cut inside a record"
+                stats.stop = "inside a record"
             if op == RecordType.CONNECTION and complete:
                 _connection(header, data, conns)
             elif op == RecordType.CHUNK:
@@ -91,7 +91,7 @@ def read_messages(
             if complete:
                 stats.end = f.tell()
     if stats.end < stats.size and stats.stop is None:
-        stats.stop = "cut inside a record"
+        stats.stop = "inside a record"
 
 
 def _connection(header: Header, data: bytes, conns: dict[int, tuple[str, str]]) -> None:
