@@ -85,7 +85,8 @@ def _exit_for_stop(stopped: str) -> int:
 
 
 def apply_source_args(config: Any, args: argparse.Namespace) -> None:
-    """--start / --max-frames / --strict into the config's source section (validated)."""
+    """--start / --max-frames / --strict / --stamps into the config's source section
+    (validated)."""
     import dataclasses
 
     src = config.source
@@ -94,6 +95,7 @@ def apply_source_args(config: Any, args: argparse.Namespace) -> None:
         start=args.start if args.start is not None else src.start,
         max_frames=args.max_frames if args.max_frames is not None else src.max_frames,
         strict=bool(args.strict) or src.strict,
+        stamps=getattr(args, "stamps", None) or src.stamps,
     )
 
 
@@ -381,6 +383,13 @@ def build_parser() -> argparse.ArgumentParser:
             action="store_true",
             help="stop (exit 2) at the first damaged message or bad stamp instead of "
             "skipping and counting it",
+        )
+        q.add_argument(
+            "--stamps",
+            choices=("auto", "header", "record"),
+            default=None,
+            help="the clock of a scan: the header stamp, the bag's record time, or auto "
+            "(default: the header stamp unless it does not increase, then the record time)",
         )
         q.add_argument("--quiet", action="store_true", help="no progress bar")
 

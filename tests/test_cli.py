@@ -222,3 +222,14 @@ def test_stop_codes_say_why_a_run_ended_early():
     assert _stop_code({"stopped_by": "interrupted (Ctrl-C)", "out": "o"}) == 130
     assert _stop_code({"stopped_by": "bad input: truncated bag", "out": "o"}) == 2
     assert _stop_code({"stopped_by": "back end failed: indeterminate", "out": "o"}) == 1
+
+
+def test_stamps_flag_reaches_the_source_config(tmp_path, corridor_short):
+    out = tmp_path / "s"
+    assert main(["run", str(corridor_short.bag), "--out", str(out), "--quiet",
+                 "--max-frames", "3", "--stamps", "record"]) == 0  # fmt: skip
+    assert "stamps: record" in (out / "config.yaml").read_text()
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 3
+    with pytest.raises(SystemExit):
+        main(["run", str(corridor_short.bag), "--stamps", "bogus"])
