@@ -67,9 +67,23 @@ def keyframe_stamps(loops_csv: Path) -> dict[int, float]:
     return out
 
 
-def loop_edges(g2o: Path) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+def loop_pairs(loops_csv: Path) -> set[tuple[int, int]]:
+    """(target, source) of the accepted rows of loops.csv."""
+    with loops_csv.open() as fh:
+        return {
+            (int(r["target"]), int(r["source"]))
+            for r in csv.DictReader(fh)
+            if str(r.get("accepted", "")).strip().lower() in ("1", "true", "yes")
+        }
+
+
+def loop_edges(
+    g2o: Path, pairs: set[tuple[int, int]] | None = None
+) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     """(target, source, T_target_source, info 6x6 rotation first) of every between factor
-    that does not join consecutive keyframes (the odometry chain)."""
+    that does not join consecutive keyframes (the odometry chain); with ``pairs`` only those
+    (other factor plugins, e.g. the ground factor's relative mode, add between factors
+    too)."""
     graph, _ = gtsam.readG2o(str(g2o), True)
     out = []
     for i in range(graph.size()):
@@ -77,7 +91,7 @@ def loop_edges(g2o: Path) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
         if not isinstance(f, gtsam.BetweenFactorPose3):
             continue
         a, b = (gtsam.Symbol(k).index() for k in f.keys())
-        if abs(b - a) == 1:
+        if abs(b - a) == 1 or (pairs is not None and (a, b) not in pairs):
             continue
         R = np.asarray(f.noiseModel().R(), dtype=float)
         out.append((a, b, f.measured().matrix(), R.T @ R))
@@ -91,7 +105,7 @@ def audit(
     stamps = keyframe_stamps(run_dir / "loops.csv")
     gt_stamps, gt_poses = read_tum(gt)
     checks = []
-    for a, b, T_meas, info in loop_edges(run_dir / "graph.g2o"):
+    for a, b, T_meas, info in loop_edges(run_dir / "graph.g2o", loop_pairs(run_dir / "loops.csv")):
         if a not in stamps or b not in stamps:
             raise KeyError(f"loop edge {a} -> {b}: keyframe stamp not in loops.csv")
         Ta = gt_poses[nearest(gt_stamps, stamps[a])]

@@ -38,13 +38,11 @@ from slam.types import Keyframe  # noqa: E402
 def run_pairs(run_dir: Path) -> set[tuple[float, float]]:
     """(stamp_target, stamp_source) of the loops in a run's pose graph (its graph.g2o loop
     edges, stamps from its loops.csv): the loops it kept, unconfirmed ones excluded."""
-    from loop_audit import keyframe_stamps, loop_edges
+    from loop_audit import keyframe_stamps, loop_edges, loop_pairs
 
     stamps = keyframe_stamps(run_dir / "loops.csv")
-    return {
-        (round(stamps[a], 6), round(stamps[b], 6))
-        for a, b, _, _ in loop_edges(run_dir / "graph.g2o")
-    }
+    edges = loop_edges(run_dir / "graph.g2o", loop_pairs(run_dir / "loops.csv"))
+    return {(round(stamps[a], 6), round(stamps[b], 6)) for a, b, _, _ in edges}
 
 
 class OracleLoops:
