@@ -3,6 +3,30 @@ density-adaptive variant (improved FLOAM, paper 000, section 2.3, eqs. (4)-(9)).
 
 Both return a boolean keep-mask over the input points, so callers can filter every
 per-point field of a scan (``scan.select(mask)``).
+
+Exactness and its price (issue 12, measured on one scan each of the simulated urban HDL-64
+and the real KITTI-raw HDL-64E, one thread, CPU ms): the statistics mu, sigma (eqs. (8),
+(9)), d_avg (5) and rho_avg are sums over every point's k-NN distances, so the exact filter
+needs the exact k-NN of every raw point; nothing cheaper decides it exactly. Estimating them
+from a plain sample fails: sigma is set by a few isolated points (KITTI-raw: 0.111 m for the
+scan, 0.063 m from every 4th point, 2.6 % of the decisions flipped; corridor: every 16th
+point gave sigma 0.005 against 0.036). ``weighted_sor_estimated`` (opt-in,
+``SorConfig.stats_stride``) therefore searches the sparse points in full and lets only the
+points that are certain to be kept stop early (``safe_keep_radius``): stride 8 flips 0-3 of
+117-133k decisions (urban HDL-64 APE over 100 frames 4.97 -> 4.88 cm, OS-128 3.83 -> 3.84 cm,
+KITTI-raw per-frame motion vs small_gicp 0.69 / 1.86 cm mean / max, both unchanged), and
+takes the k-NN + statistics from 67.9 to 56.4 ms (urban) and 88.1 to 67.7 ms (KITTI-raw).
+In the pipeline the curvature correction then asks for the exact rows of ~10k features, and
+completing the stopped ones costs a fresh window search each (~1 us per row, 2 ms per call):
+CPU per frame, 2 threads, machine under load (15-22 on 2 cores), same run: SOR 111 -> 105
+(urban) and 127 -> 113 ms (KITTI-raw), completion +21 / +17 ms, the frame 194 -> 213 /
+209 -> 208 ms; with OMP_WAIT_POLICY=passive (OpenMP's idle threads spinning inflate every
+parallel region's CPU time, small_gicp's 2.5x) on KITTI-raw: SOR 115 -> 91, completion
++10, the frame 204 -> 182 ms, while wall time per frame grew (two more parallel regions per
+scan, each barrier dear on a loaded machine). Not shown to pay on a quiet machine yet, hence
+off by default. Writing no neighbour indices at all (distances only) saved
+3-4 % of the window search (urban, KITTI-raw), less than the second search the curvature's
+rows would then need.
 """
 
 from __future__ import annotations
@@ -34,7 +58,9 @@ class SorConfig:
     (``weighted_sor_estimated``) for scans of at least stats_min_points points with a ring
     field: one point in stats_stride (of the range-image order) gets its exact k-NN for the
     statistics of eqs. (5), (8), (9), the others stop their search as soon as they are
-    certain to be kept. 0 = the exact statistics (default).
+    certain to be kept. 0 = the exact statistics (default; the module doc has the numbers:
+    0-3 decisions of ~120k flipped, no net gain per frame once the curvature's rows are
+    completed).
     """
 
     enabled: bool = True
