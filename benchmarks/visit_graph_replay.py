@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.eval.map2d import fuse_scans, view_directions, wall_thickness
-from slam.eval.metrics import read_trajectory
+from slam.eval.map2d import fuse_scans, view_directions, wall_thickness, windowed_floor
+from slam.eval.metrics import evaluate, evaluate_arrays, read_trajectory
 from slam.io.carmen import CarmenSource
-from slam.mapping.grid2d import matrix_to_pose2
+from slam.mapping.grid2d import matrix_to_pose2, pose2_to_matrix
 from slam.visit_graph import VisitGraphConfig, run_visit_graph
 
 
@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", default=[], help="VisitGraphConfig key=value")
     ap.add_argument("--out", type=Path, default=None, help="write trajectory.tum + events")
     ap.add_argument("--skip-run-walls", action="store_true")
+    ap.add_argument("--gt", type=Path, default=None, help="ground truth (TUM): APE RMSE")
     args = ap.parse_args(argv)
     stamps, scans, odom = load_scans(args.log, args.frames)
     fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps)
@@ -102,6 +103,14 @@ def main(argv: list[str] | None = None) -> None:
     }
     if not args.skip_run_walls and (args.run / "trajectory.tum").is_file():
         row["run_trajectory"] = walls(poses_at(args.run / "trajectory.tum", stamps), scans)
+    row["window_floor"] = windowed_floor(fe[::2], scans[::2], window=50, every=1).median
+    if args.gt is not None:
+        gs, gT = read_trajectory(args.gt)
+        for name, P in [("visit_graph", poses), ("front_end", fe)]:
+            ev = evaluate_arrays(stamps, np.stack([pose2_to_matrix(p) for p in P]), gs, gT)
+            row[f"ape_rmse_{name}"] = ev.ape_trans["rmse"]
+        if (args.run / "trajectory.tum").is_file():
+            row["ape_rmse_run"] = evaluate(args.run / "trajectory.tum", args.gt).ape_trans["rmse"]
     print(json.dumps(row, indent=1))
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -99,3 +99,28 @@ def test_dpcr2d_visit_keyframes_carry_the_visit_clouds(rooms):
         plugin.on_keyframe(keyframes[-1], view)
     assert len(plugin.visit_loops.order) == len(kf)
     assert all(e.region_source == -1 for e in plugin.events)
+
+
+def test_visit_grid_fuses_the_visits_at_the_optimised_poses(rooms):
+    """``visit_grid``: the visits' hits at the poses given (map.pgm of a visit run): at the
+    front end's poses the walls of the scans; with every keyframe moved by 1 m the
+    obstacles move by 1 m; without ``visit_scans`` there is none (regional maps instead)."""
+    seq, _, _, _ = rooms
+    fe = Dpcr2d(Dpcr2dConfig(visit_scans=10))
+    plain = Dpcr2d()
+    out = []
+    for k in range(40):
+        xyz = np.column_stack([seq.points(k), np.zeros(len(seq.points(k)))])
+        out.append(fe.process(Scan(float(seq.stamps[k]), xyz, index=k)))
+        plain.process(Scan(float(seq.stamps[k]), xyz, index=k))
+    poses = [o.pose for o in out if o.is_keyframe]
+    assert plain.visit_grid({i: T for i, T in enumerate(poses)}) is None
+    grid = fe.visit_grid({i: T for i, T in enumerate(poses)})
+    moved = {}
+    for i, T in enumerate(poses):
+        moved[i] = T.copy()
+        moved[i][0, 3] += 1.0
+    shifted = fe.visit_grid(moved)
+    a, b = grid.obstacles(), shifted.obstacles()
+    assert len(a) > 500 and abs(len(a) - len(b)) < 0.05 * len(a)
+    assert np.median(b[:, 0]) - np.median(a[:, 0]) == pytest.approx(1.0, abs=0.06)
