@@ -406,3 +406,32 @@ def test_estimated_statistics_agree_with_exact_filter(name, request):
     # below stats_min_points (16-beam scans by default) the exact filter, bit for bit
     small = SorConfig(stats_stride=8, stats_min_points=len(xyz) + 1)
     assert np.array_equal(apply_sor(xyz, small, neighbourhoods(xyz, K, ring=ring)), ref)
+
+
+def test_completed_rows_fall_back_to_kdtree_exactly(urban64, monkeypatch):
+    """Rows the window cannot certify and the box search declines (both forced here: 5
+    visits, no box search) are completed by the KD-tree, exactly."""
+    import slam.preprocess.range_image as ri
+
+    xyz, ring = urban64
+    ref_nbh = neighbourhoods(xyz, K, ring=ring)
+    ref_dist = ref_nbh.dist.copy()
+    ref_idx = np.asarray(ref_nbh.idx).copy()
+    nbh = neighbourhoods(xyz, K, ring=ring)
+    apply_sor(xyz, SorConfig(stats_stride=8), nbh)
+    assert nbh._inexact is not None
+    calls = []
+    real = ri.RangeImage.exact_rows
+
+    def declining(self, res, points, **kw):
+        monkeypatch.setattr(ri, "MAX_UNCERTIFIED", -1.0)
+        try:
+            left = real(self, res, points, max_visits=5)
+        finally:
+            monkeypatch.setattr(ri, "MAX_UNCERTIFIED", 0.25)
+        calls.append(len(left))
+        return left
+
+    monkeypatch.setattr(ri.RangeImage, "exact_rows", declining)
+    assert_same_knn(xyz, np.asarray(nbh.idx), nbh.dist, ref_idx, ref_dist)
+    assert calls and calls[0] > 0  # some rows did go to the KD-tree
