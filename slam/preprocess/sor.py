@@ -24,7 +24,11 @@ CPU per frame, 2 threads, machine under load (15-22 on 2 cores), same run: SOR 1
 parallel region's CPU time, small_gicp's 2.5x) on KITTI-raw: SOR 115 -> 91, completion
 +10, the frame 204 -> 182 ms, while wall time per frame grew (two more parallel regions per
 scan, each barrier dear on a loaded machine). Not shown to pay on a quiet machine yet, hence
-off by default. Writing no neighbour indices at all (distances only) saved
+off by default. ``benchmarks/bench_preprocess.py --estimated`` (filter plus the exact rows
+of 10k kept points, min of 5, load average 25, CPU ms): 1 thread urban 73.0 -> 68.9,
+KITTI-raw 99.6 -> 86.6; 2 threads 95.4 -> 113.5, 110.7 -> 132.2 (its 3 parallel regions per
+scan against 1); 16-beam scans 10-13 -> 16-19 (stats_min_points keeps them exact).
+Writing no neighbour indices at all (distances only) saved
 3-4 % of the window search (urban, KITTI-raw), less than the second search the curvature's
 rows would then need.
 """
