@@ -30,10 +30,9 @@ header stamps run backwards), urban-zerostamps (header stamps all 0: a driver th
 not set them), urban-clockback (the header clock steps back 2.55 s at message 200),
 urban-glitch (one header stamp 100 s ahead), urban-empty3 (the first three clouds empty),
 urban-partial1 (the first cloud only the sweep's last 36 degrees), urban-nan30 (30 % of
-every cloud NaN), urban-still10 (10 s standing before the drive, 1 cm sensor noise),
-urban-truncated (the bag cut at 60 % of its bytes, no index); the rewritten bags are
-recorded 50-60 ms after each scan's true stamp, in the variant's message order, so that
-a run on the record time is judged too; park, plaza, corridor, kitti
+every cloud NaN), urban-truncated (the bag cut at 60 % of its bytes, no index); the
+rewritten bags are recorded 50-60 ms after each scan's true stamp, in the variant's
+message order, so that a run on the record time is judged too; park, plaza, corridor, kitti
 (the 22 real KITTI-raw HDL-64E scans, a folder of PCD files) and pair (the real HDL-32E scan
 pair and its reference transform).
 """
@@ -60,11 +59,10 @@ STOP_TEXT = 90  # characters of the stop reason in the table
 URBAN_SENSORS = ("vlp16", "hdl32", "hdl64", "os128")
 VARIANTS = (
     "strip", "jitter", "drop5", "gap20", "swap", "reversed", "zerostamps", "clockback",
-    "glitch", "empty3", "partial1", "nan30", "still10",
+    "glitch", "empty3", "partial1", "nan30",
 )  # fmt: skip
 GAP_AT = 150  # the first message of gap20's 2 s stall (a third into shorter bags)
 JUMP_AT = 200  # where clockback's clock steps back, glitch's stamp jumps (or half-way)
-STILL_SCANS = 100  # 10 s at 10 Hz
 SCENES = ("park", "plaza", "corridor")
 ALL_CASES = (
     [f"urban-{s}" for s in URBAN_SENSORS]
@@ -134,13 +132,10 @@ def verdict(row: dict) -> dict:
 
 
 # ------------------------------------------------------------------ data
-def rewrite_bag(
-    src_bag: Path, out: Path, variant: str, seed: int = 0, gt: Path | None = None
-) -> tuple[Path, Path]:
+def rewrite_bag(src_bag: Path, out: Path, variant: str, seed: int = 0) -> tuple[Path, Path]:
     """The bag ``src_bag`` rewritten as a ``variant`` (see the module doc), and a .npy of
     (header stamp, true stamp, record time) of its messages (the association with the
-    ground truth, whichever clock the run stamps with). ``still10`` also writes
-    ``out``.gt.tum: the ground truth ``gt`` with the 10 s of standing in front."""
+    ground truth, whichever clock the run stamps with)."""
     from slam.io.source import open_source
     from slam.types import Scan
 
@@ -188,26 +183,6 @@ def rewrite_bag(
         for s in scans:
             s.xyz = s.xyz.copy()
             s.xyz[rng.random(len(s)) < 0.3] = np.nan
-    elif variant == "still10":  # 10 s standing at the start (sensor noise 1 cm per scan)
-        first = scans[0]
-        lead = []
-        for k in range(STILL_SCANS, 0, -1):
-            c = first.select(np.arange(len(first)))
-            c.xyz = c.xyz + rng.normal(0.0, 0.01, c.xyz.shape)
-            c.stamp = float(first.stamp) - 0.1 * k
-            true[id(c)] = c.stamp
-            lead.append(c)
-        scans = lead + scans
-        t_sorted = sorted(true.values())
-        from slam.io.trajectory import read_tum, write_tum
-
-        stamps, poses = read_tum(gt)
-        pre = np.array([c.stamp for c in lead])
-        write_tum(
-            out.with_suffix(".gt.tum"),
-            np.r_[pre, stamps],
-            np.concatenate([np.repeat(poses[:1], len(pre), axis=0), poses]),
-        )
     else:
         raise ValueError(variant)
     # the record time: when the recorder got the message (50-60 ms after its true stamp)
@@ -257,10 +232,11 @@ def _sequence(case: str, frames: int | None, urban_frames: int | None) -> tuple[
 
 def true_stamps(stamp_map: np.ndarray, stamps: np.ndarray) -> np.ndarray:
     """The true stamps of a run's trajectory ``stamps`` from ``rewrite_bag``'s map: the
-    run stamped with the header or the record clock, whichever of the two columns its
-    stamps match (the nearest entry of it)."""
+    run stamped with the header clock, the record clock or, having followed a clock step
+    (urban-clockback), the true one, whichever column its stamps match best (the nearest
+    entry of it; the median distance decides, ties go to the true clock)."""
     best = None
-    for col in (0, 2):
+    for col in (1, 0, 2):
         order = np.argsort(stamp_map[:, col], kind="stable")
         ref = stamp_map[order, col]
         k = np.clip(np.searchsorted(ref, stamps), 1, max(len(ref) - 1, 1))
@@ -436,10 +412,8 @@ def main() -> None:
                 bag, gt = _sequence(case, args.frames, urban_frames)
                 variant = case.split("-", 1)[1] if case.startswith("urban-") else ""
                 if variant in VARIANTS:
-                    bag, stamp_map = rewrite_bag(bag, tmp / f"{case}.bag", variant, gt=gt)
+                    bag, stamp_map = rewrite_bag(bag, tmp / f"{case}.bag", variant)
                     base["stamp_map"] = str(stamp_map)
-                    if variant == "still10":
-                        gt = bag.with_suffix(".gt.tum")
                 elif variant == "truncated":
                     bag = truncate_bag(bag, tmp / f"{case}.bag")
                 base.update(bag=str(bag), gt=str(gt))
