@@ -510,11 +510,9 @@ def window_knn(
             span_kth2 = -1.0  # the kth2 the sector span was computed for (-1: none yet)
             s0 = 0
             ns = S
-            stop_now = False  # exited
-            while (up_open or down_open) and visits <= max_visits and not stop_now:
+            stop_now = False  # exited (then budget 0 and both sides closed: the loops end)
+            while (up_open or down_open) and visits <= max_visits:
                 for side in range(2):
-                    if stop_now:
-                        break
                     if side == 0:
                         if not up_open:
                             continue
@@ -583,8 +581,11 @@ def window_knn(
                             _sort10(bd, bi)
                         visits += w - 1
                         kth2 = bd[k - 1]
-                        stop_now = kth2 <= ex2
                         budget = cnt - w
+                        if kth2 <= ex2:
+                            stop_now = True
+                            budget = 0
+                            up_open = down_open = False
                         u_right = pos + half + 1
                         u_left = pos - half - 1
                         he = 0.0
@@ -630,7 +631,7 @@ def window_knn(
                     for direction in range(2):
                         step = 1 if direction == 0 else -1
                         u = u_right if direction == 0 else u_left
-                        while budget > 0 and visits <= max_visits and not stop_now:
+                        while budget > 0 and visits <= max_visits:
                             if u >= cnt:
                                 u -= cnt
                             elif u < 0:
@@ -672,7 +673,10 @@ def window_knn(
                             if d2 < kth2:
                                 _insert(bd, bi, d2, q)
                                 kth2 = bd[k - 1]
-                                stop_now = kth2 <= ex2
+                                if kth2 <= ex2:
+                                    stop_now = True
+                                    budget = 0
+                                    up_open = down_open = False
                                 stop = _stop_dot(kth2, r2, he, coef)
                 m += 1
             # rows in input order when the input is stored ring by ring (near-sequential
