@@ -14,7 +14,9 @@ scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans
 right after it on the same machine state. ``... CPU (first100/last100)``: CPU ms of each
 stage per frame over the first and last 100 frames (metrics.json stage_cpu_ms_*), which,
 unlike wall time, a loaded machine does not inflate. --cpu adds ``cpu <stage>`` rows: CPU ms
-per frame (process time, numba's threads included) around improved_floam's stage functions;
+per frame (process time, numba's threads included) around improved_floam's stage functions
+(the map's k-NN queries are also inside registration and map update: nested, not additive;
+idle OpenMP threads spin and count, OMP_WAIT_POLICY=passive removes that);
 ``x small_gicp (CPU)`` is the same ratio in CPU time per frame. --variant runs each dataset
 once more per LABEL:KEY=V[,...] override set (an A/B on the same scans in the same run).
 """
