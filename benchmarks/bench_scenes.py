@@ -6,6 +6,12 @@ small_gicp's own scan-to-map odometry run on the same scans in the same session.
         [--set frontend.plane_voxel=0.3 ...] \\
         [--variant off:frontend.max_scan_points=0 60k:frontend.max_scan_points=60000 ...]
 
+--calibration-seed N [N ...]: the scene's sensor with other draws of its per-beam calibration
+errors (``LidarModel.calibration_seed``; "ideal" = none), one sequence per draw (cached like
+the others). One draw is one sensor unit: on the urban drive (HDL-32E, 150 frames) improved
+FLOAM's APE was 3.7 cm without calibration errors and 31 / 67 / 33 cm with draws 0 / 1 / 2
+(FLOAM 8.5 / 15 / 55 / 37 cm), so compare front ends over several draws.
+
 --set overrides apply to every run; each --variant LABEL:KEY=V[,KEY=V...] runs every config
 once more with its overrides (an A/B in one session: same load, same scans).
 
@@ -114,6 +120,23 @@ def _small_gicp(job: dict) -> dict:
     }
 
 
+def calibrated(scene: str, sensor: str, draw: str | None):
+    """The LiDAR model of ``scene`` with ``sensor`` and another draw of its per-beam
+    calibration errors: None = the scene's own model (the default sequence), "ideal" = no
+    calibration errors (everything else as the scene has it), an int = that
+    ``calibration_seed``."""
+    if draw is None:
+        return None
+    from dataclasses import replace
+
+    from slam.sim.simulate import effective_model
+
+    model = effective_model(scene, sensor=sensor)
+    if draw == "ideal":
+        return replace(model, calib_elevation_deg=0.0, calib_azimuth_deg=0.0, calib_range_m=0.0)
+    return replace(model, calibration_seed=int(draw))
+
+
 def _fmt(v, unit=""):
     if v is None:
         return "-"
@@ -132,6 +155,12 @@ def main() -> None:
     ap.add_argument("--json", help="also write the rows here")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="KEY=V")
     ap.add_argument("--variant", nargs="+", default=[], help="LABEL:KEY=V[,KEY=V...]")
+    ap.add_argument(
+        "--calibration-seed",
+        nargs="+",
+        default=[],
+        help="per-beam calibration draws of the sensor (int, or 'ideal' for none)",
+    )
     args = ap.parse_args()
     variants = [("", [])]
     if args.variant:
@@ -141,15 +170,19 @@ def main() -> None:
             variants.append((label, [x for x in sets.split(",") if x]))
     from slam.sim.cache import ensure_sequence
 
+    draws = list(args.calibration_seed) or [None]
     ctx = mp.get_context("spawn")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_scenes_") as tmp:
         for scene in args.scene:
-            for sensor in args.sensor:
-                seq = ensure_sequence(scene, sensor=sensor, frames=args.frames)
+            for sensor, draw in ((s, d) for s in args.sensor for d in draws):
+                seq = ensure_sequence(
+                    scene, sensor=sensor, frames=args.frames, model=calibrated(scene, sensor, draw)
+                )
+                label = sensor if draw is None else f"{sensor} cal {draw}"
                 base = {
                     "scene": scene,
-                    "sensor": sensor,
+                    "sensor": label,
                     "bag": str(seq.bag),
                     "gt": str(seq.ground_truth),
                     "frames": args.frames,
@@ -158,12 +191,12 @@ def main() -> None:
                     {
                         **base,
                         "config": c,
-                        "variant": label,
+                        "variant": vlabel,
                         "overrides": args.overrides + sets,
-                        "out": f"{tmp}/{scene}-{sensor}-{c}-{label}",
+                        "out": f"{tmp}/{scene}-{sensor}-{draw}-{c}-{vlabel}",
                     }
                     for c in args.configs
-                    for label, sets in variants
+                    for vlabel, sets in variants
                 ]
                 for job in jobs:
                     with ctx.Pool(1) as pool:
