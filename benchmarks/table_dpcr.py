@@ -109,7 +109,8 @@ def run(
         "keyframes": summary["keyframes"],
         "ms_per_scan": means.get("total_ms", float("nan")),
         "wall_s": wall,
-        "storage_bytes": storage.get("regional_maps", storage.get("keyframe_clouds", 0)),
+        "storage_bytes": storage.get("regional_maps", storage.get("keyframe_clouds", 0))
+        + storage.get("visit_clouds", 0),
         "submap_bytes": storage.get("submap", 0),
         "regions": len(getattr(pipe.frontend, "regions", {})),
     }

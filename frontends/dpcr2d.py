@@ -220,11 +220,15 @@ class Dpcr2d:
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
-        """Bytes of the stored grids: submap and regional maps (paper 003's metric)."""
-        return {
+        """Bytes of the stored grids: submap and regional maps (paper 003's metric), and
+        with ``visit_scans`` the visit clouds."""
+        out = {
             "submap": self.submap.nbytes,
             "regional_maps": sum(r.grid.nbytes for r in self.regions.values()),
         }
+        if self.cfg.visit_scans:  # the visit graph's clouds (float32 x, y as stored)
+            out["visit_clouds"] = sum(8 * len(p) for p in self.visit_points)
+        return out
 
     def region_placements(self, estimates: dict[int, np.ndarray]) -> dict[int, np.ndarray] | None:
         """Each regional map's placement (x, y, theta) in the graph's frame, from the
@@ -469,7 +473,7 @@ class Dpcr2d:
         self._since_kf = 0
         local = visit_cloud(np.array([q for _, q in recent]), [p for p, _ in recent], anchor,
                             self.cfg.region_grid.resolution)  # fmt: skip
-        self.visit_points.append(local)
+        self.visit_points.append(local.astype(np.float32))
         return np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
 
     # ------------------------------------------------------------------ contract

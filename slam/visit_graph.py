@@ -72,7 +72,7 @@ class VisitGraphConfig:
     odom_turn_fraction: float = 0.02
     min_path: float = 8.0
     radius: float = 6.0
-    max_candidates: int = 3
+    max_candidates: int = 6
     search_m: float = 1.5
     search_fraction: float = 0.05
     max_search_m: float = 4.0
