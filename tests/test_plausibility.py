@@ -129,3 +129,24 @@ def test_relaxed_gate_accepts_a_changed_scene_but_not_a_blinded_sensor():
     assert why(blind, 2.0) is not None and why(blind, 4.0) is None
     assert relaxed(cfg, 1.0) is cfg
     assert relaxed(cfg, 2.0).max_speed == cfg.max_speed  # physics does not relax
+
+
+def test_fitness_relaxes_on_its_own_clock():
+    """A residual that rose with the scene (a normal set while the car stood) is believed
+    once the fitness ratios alone are widened; the support test stays as strict, so a
+    blinded sensor is still rejected (the front end widens the fitness ratios every 0.5 s
+    of lost tracking, the others every 5 s)."""
+    cfg = PlausibilityConfig()
+    n = normal_of(0.06)
+
+    def why(res, factor, fitness_factor):
+        gate = relaxed(cfg, factor, fitness_factor)
+        return implausibility(res, 30.0, n, step(), np.eye(4), DT, gate)
+
+    risen, blind = result(0.22), result(0.1, inliers=130, source=140)
+    assert "fitness" in why(risen, 1.0, 1.0)
+    assert why(risen, 1.0, 2.0) is None
+    assert "correspondences" in why(blind, 1.0, 8.0)
+    gate = relaxed(cfg, 1.0, 2.0)
+    assert gate.max_fitness_ratio == 2 * cfg.max_fitness_ratio
+    assert gate.min_support_ratio == cfg.min_support_ratio

@@ -79,15 +79,19 @@ class PlausibilityConfig:
             raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
 
 
-def relaxed(cfg: PlausibilityConfig, factor: float) -> PlausibilityConfig:
-    """``cfg`` with its relative tolerances widened ``factor`` times (1 = unchanged); the
-    physical motion bounds stay."""
-    if factor == 1.0:
+def relaxed(
+    cfg: PlausibilityConfig, factor: float, fitness_factor: float | None = None
+) -> PlausibilityConfig:
+    """``cfg`` with its relative tolerances widened ``factor`` times (1 = unchanged), the
+    fitness ratios ``fitness_factor`` times (default ``factor``); the physical motion
+    bounds stay."""
+    fitness_factor = factor if fitness_factor is None else fitness_factor
+    if factor == 1.0 and fitness_factor == 1.0:
         return cfg
     return replace(
         cfg,
-        max_fitness_ratio=cfg.max_fitness_ratio * factor,
-        unconverged_fitness_ratio=cfg.unconverged_fitness_ratio * factor,
+        max_fitness_ratio=cfg.max_fitness_ratio * fitness_factor,
+        unconverged_fitness_ratio=cfg.unconverged_fitness_ratio * fitness_factor,
         min_inlier_ratio=cfg.min_inlier_ratio / factor,
         min_support_ratio=cfg.min_support_ratio / factor,
         min_information_ratio=cfg.min_information_ratio / factor,
