@@ -229,6 +229,8 @@ def test_stamps_flag_reaches_the_source_config(tmp_path, corridor_short):
     assert main(["run", str(corridor_short.bag), "--out", str(out), "--quiet",
                  "--max-frames", "3", "--stamps", "record"]) == 0  # fmt: skip
     assert "stamps: record" in (out / "config.yaml").read_text()
+    # the kernels were loaded before the first frame's clock (slam.warmup)
+    assert json.loads((out / "metrics.json").read_text())["warmup_seconds"] > 0
     stamps, _ = read_tum(out / "trajectory.tum")
     assert len(stamps) == 3
     with pytest.raises(SystemExit):
