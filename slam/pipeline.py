@@ -183,9 +183,9 @@ class Pipeline:
         self.beams: Any = None  # slam.sensor.BeamModel once estimated from the first scans
         self._buffer: list[Scan] = []  # the first scans, held until the beam model exists
         self._period = 0.1  # sweep period (s): median stamp step of the first scans
-        # per-point time from the layout for beam-by-beam clouds without one (run() decides
-        # from the source: KITTI / PCD folders hold motion-compensated scans)
-        self._layout_time = config.source.layout_time != "never"
+        # per-point time from the layout for beam-by-beam clouds without one: only when asked
+        # for (KITTI-style clouds, in folders or bags, are published motion-compensated)
+        self._layout_time = config.source.layout_time == "always"
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._frame_stages: dict[str, float] = {}  # seconds per stage in the current step
@@ -564,8 +564,6 @@ class Pipeline:
         """
         st = self.state
         src = self.config.source
-        if src.layout_time == "auto":
-            self._layout_time = not getattr(scans, "motion_compensated", False)
         notes = getattr(scans, "notes", None)
         self._notes = notes if isinstance(notes, list) else None
         use_stamps = getattr(scans, "use_stamps", None)  # bags: header or record time

@@ -15,7 +15,9 @@ numbering. The simulator then writes bags like the real recordings users bring:
   two blocks, upper 32 from +2 to -8.33 deg (1/3 deg apart) and lower 32 from -8.87 to
   -24.9 deg (~1/2 deg), 2083 columns at 10 Hz (0.17 deg, ~133k rays); x y z intensity
   only (layout ``xyzi``, 16 bytes: no ring, no per-point time), points ordered scan line
-  by scan line from the top beam down, as in the KITTI .bin files.
+  by scan line from the top beam down, as in the KITTI .bin files, and motion-compensated
+  to the sweep start like KITTI's scans (the real KITTI-raw scans register best without
+  any further deskewing).
 - ``os128``: Ouster OS1-128, 128 beams uniform over +-22.5 deg (0.35 deg), 1024 columns
   at 10 Hz (~131k rays); ouster_ros layout (48-byte points, ``t`` uint32 ns from the scan
   start, ``ring`` uint16, ``range`` mm), row-major like the driver's organised cloud, ring
@@ -47,6 +49,8 @@ class SensorSpec:
     layout: PointCloud2 layout name. topic / frame_id: where its driver publishes.
     row_major: points ordered ring by ring (each a full turn) instead of column by column.
     ring_top_first: ring 0 is the highest beam (Ouster) instead of the lowest (Velodyne).
+    motion_compensated: the published points are expressed in the sensor frame at the sweep
+    start (the header stamp), as KITTI publishes its scans, instead of at their firing time.
     ideal / realistic: build the LidarModel without / with the realism error sources.
     """
 
@@ -59,6 +63,7 @@ class SensorSpec:
     realistic: Callable[[], LidarModel]
     row_major: bool = False
     ring_top_first: bool = False
+    motion_compensated: bool = False
 
     def model(self, realistic: bool = False) -> LidarModel:
         """The sensor's LidarModel (a fresh object), with or without the realism errors."""
@@ -119,6 +124,7 @@ SENSORS: dict[str, SensorSpec] = {
             range_sigma=0.012, calib_elevation_deg=0.12, calib_range_m=0.025, **_HDL64
         ),
         row_major=True,
+        motion_compensated=True,
     ),
     "os128": SensorSpec(
         "os128",

@@ -104,6 +104,16 @@ def _driver_convention(
     return out, dataclasses.replace(truth, **per_point)
 
 
+def _compensated(scan: Scan, truth: ScanTruth) -> Scan:
+    """The sweep with every point moved from the sensor frame at its firing time to the
+    sensor frame at the sweep start (KITTI's motion compensation, with the true motion)."""
+    T = truth.T_world_sensor_columns
+    T_start_columns = np.linalg.inv(T[0]) @ T  # (columns, 4, 4)
+    Tc = T_start_columns[truth.column]
+    moved = np.einsum("nij,nj->ni", Tc[:, :3, :3], scan.xyz) + Tc[:, :3, 3]
+    return dataclasses.replace(scan, xyz=moved, time=None)  # no firing time left to deskew
+
+
 def full_frames(scene: Scene, model: LidarModel) -> int:
     """Number of complete sweeps within the scene's drive."""
     return int(np.floor((scene.duration - model.period) / model.period + 1e-9)) + 1
@@ -139,6 +149,8 @@ def iter_scans(
             scene, pose_at, float(stamp), model, rng, time_offset=STAMP0
         )
         scan, truth = _driver_convention(scan, truth, model.beams, spec)
+        if spec.motion_compensated:
+            scan = _compensated(scan, truth)
         scan.index = i
         yield (scan, truth) if with_truth else scan
 
