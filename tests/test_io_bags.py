@@ -188,6 +188,13 @@ def test_bag_without_index_is_read_record_by_record(tmp_path, name):
         np.testing.assert_array_equal(s.ring, r.ring)
     assert len(src.notes) == 1 and "no usable index" in src.notes[0]
     assert f"read record by record, {n} messages (the file's" in src.notes[0]
+    # slam info describes it the same way instead of "cannot open"
+    from slam.io.info import describe
+
+    info = describe(path)
+    assert info["topics"]["/velodyne_points"]["count"] == n
+    assert info["topics"]["/velodyne_points"]["points"] == len(ref[0])
+    assert "record by record" in info["note"]
     (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 50)
     with pytest.raises(InputError, match="record by record failed too"):
         open_source(tmp_path / "junk.bag")

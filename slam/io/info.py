@@ -52,9 +52,22 @@ def describe_bag(path: str | Path) -> dict[str, Any]:
     ``point_step``, ``frame_id`` and the detected ``time_field``/``time_unit``/``time_absolute``.
     Reads every record once but deserialises only those first clouds.
     """
-    from slam.io.bags import POINTCLOUD2, _bag_kind, list_topics, open_reader
+    from slam.io.bags import _sequential_reader
 
     path = Path(path)
+    try:
+        return _describe_indexed(path)
+    except InputError:
+        seq = _sequential_reader(path) if path.exists() else None
+        if seq is None:
+            raise
+        return _describe_sequential(path, seq)
+
+
+def _describe_indexed(path: Path) -> dict[str, Any]:
+    """:func:`describe_bag` through rosbags (a bag with its index)."""
+    from slam.io.bags import POINTCLOUD2, _bag_kind, list_topics, open_reader
+
     with open_reader(path) as reader:
         topics = list_topics(reader)
         times: dict[str, list[int]] = {t.name: [] for t in topics}
@@ -87,6 +100,46 @@ def describe_bag(path: str | Path) -> dict[str, Any]:
         "start": start,
         "duration": float(duration),
         "topics": out_topics,
+    }
+
+
+def _describe_sequential(path: Path, seq: tuple[Path, Any, Any]) -> dict[str, Any]:
+    """:func:`describe_bag` of a bag without a usable index (a ROS1 bag cut short, a killed
+    recording's ``.bag.active``, an MCAP without its end), read record by record as
+    ``slam run`` reads it: every complete message, and a note saying so."""
+    from slam.io.bags import POINTCLOUD2, _bag_kind
+
+    data_file, read_messages, deserialize = seq
+    times: dict[str, list[int]] = {}
+    types: dict[str, str] = {}
+    first: dict[str, Any] = {}
+    try:
+        for topic, msgtype, t_ns, raw in read_messages(data_file):
+            times.setdefault(topic, []).append(int(t_ns))
+            types[topic] = msgtype
+            if msgtype == POINTCLOUD2 and topic not in first:
+                first[topic] = deserialize(raw, msgtype)
+    except Exception as exc:  # a damaged record before the cut
+        raise InputError(f"{path}: cannot read it record by record: {exc}") from exc
+    out_topics: dict[str, dict[str, Any]] = {}
+    for name, ts in times.items():
+        entry: dict[str, Any] = {"type": types[name], "count": len(ts), "rate_hz": _rate_hz(ts)}
+        if name in first:
+            try:
+                entry.update(_cloud_info(first[name]))
+            except InputError as exc:
+                entry["error"] = str(exc)
+        out_topics[name] = entry
+    all_ns = [t for ts in times.values() for t in ts]
+    return {
+        "path": str(path),
+        "format": _bag_kind(path),
+        "message_count": len(all_ns),
+        "start": min(all_ns) * 1e-9 if all_ns else None,
+        "duration": (max(all_ns) - min(all_ns)) * 1e-9 if all_ns else 0.0,
+        "topics": out_topics,
+        "note": "no usable index (cut short or still recording): read record by record, "
+        "every complete message counted",
     }
 
 
