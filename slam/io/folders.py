@@ -135,11 +135,6 @@ def is_cloud_dir(path: Path) -> bool:
 class FolderSource:
     """Scans of a folder of .pcd/.ply files; ``notes``: degradations met, once each."""
 
-    # KITTI's scans are published motion-compensated (odometry readme: "This effect has been
-    # eliminated from this postprocessed data by compensating for the egomotion"; measured
-    # on the real KITTI-raw PCDs too): no per-point time is made up from their layout
-    motion_compensated = True
-
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         if not self.path.is_dir():

@@ -61,11 +61,6 @@ def read_calib_tr(path: str | Path) -> np.ndarray | None:
 class KittiSource:
     """Scans of a KITTI odometry sequence folder, in file-name order."""
 
-    # KITTI's scans are published motion-compensated (odometry readme: "This effect has been
-    # eliminated from this postprocessed data by compensating for the egomotion"; measured
-    # on the real KITTI-raw PCDs too): no per-point time is made up from their layout
-    motion_compensated = True
-
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         if not is_kitti_dir(self.path):
