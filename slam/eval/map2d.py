@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import InputError
-from slam.mapping.grid2d import GridConfig, OccupancyGrid, transform2d
+from slam.mapping.grid2d import LOG_ODDS_SCALE, GridConfig, OccupancyGrid, transform2d
 
 
 @dataclass
@@ -48,6 +48,24 @@ def fuse_scans(
     for pose, pts in zip(poses, scans, strict=True):
         if len(pts):
             grid.add_scan(transform2d(pose, pts), pose[:2], free_space=free_space)
+    return grid
+
+
+def map_server_grid(poses: np.ndarray, scans: list[np.ndarray]) -> OccupancyGrid:
+    """The probabilistic map of ``scans`` at ``poses`` as ``map_server`` reads it: log-odds
+    with hits and misses along every beam (the grid defaults: +0.85 / -0.4 nats, clamp
+    3.5; ``slam.mapping.carve2d``, compiled), a cell an obstacle when its probability is
+    above the ``occupied_thresh`` the map's YAML is written with (``slam.io.grid_map``).
+    A stray return beside a wall, crossed by later beams, is carved away; in the hits-only
+    grid of ``fuse_scans`` one hit makes it an obstacle for good."""
+    from slam.io.grid_map import OCCUPIED_THRESH
+    from slam.mapping.carve2d import carve_scans
+
+    logit = float(np.log(OCCUPIED_THRESH / (1.0 - OCCUPIED_THRESH)))
+    # the image is thresholded on p > occupied_thresh: the int16 log-odds strictly above
+    occupied = (np.floor(logit * LOG_ODDS_SCALE) + 0.5) / LOG_ODDS_SCALE
+    grid = OccupancyGrid(GridConfig(subcell=False, occupied=occupied))
+    carve_scans(grid, poses, scans)
     return grid
 
 
@@ -126,6 +144,7 @@ def windowed_floor(
     scans: list[np.ndarray],
     window: int = 100,
     every: int = 2,
+    carve: bool = False,
     **kwargs,
 ) -> WallThickness:
     """The single-visit floor of ``wall_thickness`` over the whole run: the scans cut
@@ -133,10 +152,12 @@ def windowed_floor(
     each window's map measured on its own (a stretch of a few metres, no revisit inside),
     and the cell-weighted mean of the windows' median / p90 / doubled share. The floor
     at the start alone (the first 50 scans) says little about a building whose corridors
-    are longer, more cluttered or seen from farther than its first room."""
+    are longer, more cluttered or seen from farther than its first room. ``carve``: each
+    window's map is the probabilistic one (``map_server_grid``) instead of hits only."""
     meds, p90s, doubled, cells, obstacles = [], [], [], [], 0
     for lo in range(0, len(poses) - window + 1, window):
-        grid = fuse_scans(poses[lo : lo + window : every], scans[lo : lo + window : every])
+        p, s = poses[lo : lo + window : every], scans[lo : lo + window : every]
+        grid = map_server_grid(p, s) if carve else fuse_scans(p, s)
         try:
             w = wall_thickness(grid, **kwargs)
         except InputError:  # too few walls in this window
