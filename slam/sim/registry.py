@@ -54,6 +54,9 @@ SCENES: dict[str, SceneEntry] = {
     "plaza": SceneEntry("slam.sim.scenes:plaza", ("scenes.py",)),
     "park": SceneEntry("slam.sim.scenes:park", ("scenes.py",), realistic=True),
     "urban": SceneEntry("slam.sim.urban:urban", ("urban.py", "scenes.py"), realistic=True),
+    "street": SceneEntry(
+        "slam.sim.street:street", ("street.py", "urban.py", "scenes.py"), realistic=True
+    ),
     "building": SceneEntry("slam.sim.building:building", ("building.py",), realistic=True),
     "building_loop": SceneEntry(
         "slam.sim.building:building_loop", ("building.py",), realistic=True
