@@ -20,7 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.eval.map2d import fuse_scans, view_directions, wall_thickness, windowed_floor
+from slam.eval.map2d import (
+    fuse_scans,
+    map_server_grid,
+    view_directions,
+    wall_thickness,
+    windowed_floor,
+)
 from slam.eval.metrics import evaluate, evaluate_arrays, read_trajectory
 from slam.io.carmen import CarmenSource
 from slam.mapping.grid2d import matrix_to_pose2, pose2_to_matrix
@@ -49,12 +55,17 @@ def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
 
 
 def walls(poses: np.ndarray, scans: list[np.ndarray], every: int = 2) -> dict:
+    """Hits only (``fuse_scans``, one face at a time too) and on the probabilistic map as
+    map_server reads it (``map_server_grid``: hits and misses, p > occupied_thresh)."""
     p, s = poses[::every], scans[::every]
     grid = fuse_scans(p, s)
     w = wall_thickness(grid)
     face = wall_thickness(grid, views=view_directions(grid, p, s))
+    carved = wall_thickness(map_server_grid(p, s))
     return {"median": w.median, "p90": w.p90, "doubled": w.doubled,
-            "face_median": face.median, "face_p90": face.p90}  # fmt: skip
+            "face_median": face.median, "face_p90": face.p90,
+            "carved_median": carved.median, "carved_p90": carved.p90,
+            "carved_doubled": carved.doubled}  # fmt: skip
 
 
 def parse_sets(items: list[str]) -> dict:
@@ -97,13 +108,19 @@ def main(argv: list[str] | None = None) -> None:
         "search_ms": float(np.mean(vg.search_ms)) if vg.search_ms else 0.0,
         "optimize_ms": float(np.mean(vg.optimize_ms)) if vg.optimize_ms else 0.0,
         "loop_corr_m_median": float(np.median([e.correction_m for e in acc])) if acc else 0.0,
+        "refine": vg.refine_stats,
         "visit_graph": walls(poses, scans),
         "front_end": walls(fe, scans),
         "floor_50": walls(fe[:50], scans[:50], every=1)["median"],
     }
     if not args.skip_run_walls and (args.run / "trajectory.tum").is_file():
         row["run_trajectory"] = walls(poses_at(args.run / "trajectory.tum", stamps), scans)
-    row["window_floor"] = windowed_floor(fe[::2], scans[::2], window=50, every=1).median
+    floor = windowed_floor(fe[::2], scans[::2], window=50, every=1)
+    carved = windowed_floor(fe[::2], scans[::2], window=50, every=1, carve=True)
+    row["window_floor"] = floor.median
+    row["window_floor_p90"] = floor.p90
+    row["window_floor_carved"] = carved.median
+    row["window_floor_carved_p90"] = carved.p90
     if args.gt is not None:
         gs, gT = read_trajectory(args.gt)
         for name, P in [("visit_graph", poses), ("front_end", fe)]:

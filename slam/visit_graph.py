@@ -59,7 +59,14 @@ class VisitGraphConfig:
     max_uniqueness: second peak / best above this is ambiguous; min_inliers: share of the
     target's points near the reference (within ``overlap_m``) that lie within
     ``inlier_m`` after PLICP; min_overlap: fewest such points; loop_sigma_m /
-    loop_sigma_deg: noise of a loop edge (Cauchy kernel, ``robust_param``)."""
+    loop_sigma_deg: noise of a loop edge (Cauchy kernel, ``robust_param``);
+    refine_rounds: rounds of the final multi-view refinement (``refine_visits``, 0: none);
+    refine_radius (m) / refine_refs: a visit's reference there is the clouds of the other
+    visits (at least ``min_path`` of path away) whose optimised vertex lies this close,
+    the nearest ``refine_refs``; refine_max_m / refine_max_deg: a registration moving
+    the visit farther is dropped; refine_min_inliers: share of the overlapping points
+    within ``inlier_m`` after it; refine_sigma_m / refine_sigma_deg: noise of the
+    registration, split over the reference visits (an edge to each, sigma * sqrt(n))."""
 
     visit_scans: int = 30
     pad: int = 15
@@ -87,10 +94,20 @@ class VisitGraphConfig:
     loop_sigma_deg: float = 1.0
     robust_param: float = 1.0
     plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
+    refine_rounds: int = 0
+    refine_radius: float = 6.0
+    refine_refs: int = 8
+    refine_max_m: float = 0.3
+    refine_max_deg: float = 3.0
+    refine_min_inliers: float = 0.6
+    refine_sigma_m: float = 0.05
+    refine_sigma_deg: float = 1.0
 
     def __post_init__(self) -> None:
         if self.visit_scans < 1 or self.pad < 0 or self.max_candidates < 0:
             raise ConfigError("visit_graph: visit_scans >= 1, pad >= 0, max_candidates >= 0")
+        if self.refine_rounds < 0 or self.refine_refs < 1:
+            raise ConfigError("visit_graph: refine_rounds >= 0 and refine_refs >= 1")
 
 
 @dataclass
@@ -267,6 +284,7 @@ class VisitGraph:
         self.optimize_ms: list[float] = []
         self._estimate: list[np.ndarray] = []
         self._fe: list[np.ndarray] = []
+        self.refine_stats: list[dict] = []
 
     @property
     def events(self) -> list[LoopEvent]:
@@ -276,15 +294,16 @@ class VisitGraph:
     def search_ms(self) -> list[float]:
         return self.loop_search.search_ms
 
-    def _optimize(self) -> None:
+    def _optimize(self, graph: gtsam.NonlinearFactorGraph | None = None) -> None:
         t = time.perf_counter()
+        graph = self.graph if graph is None else graph
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         params.setRelativeErrorTol(1e-6)
         start = gtsam.Values()
         for i, p in enumerate(self._estimate):
             start.insert(i, gtsam.Pose2(*p))
-        result = gtsam.LevenbergMarquardtOptimizer(self.graph, start, params).optimize()
+        result = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
         self._estimate = [
             np.array([result.atPose2(i).x(), result.atPose2(i).y(), result.atPose2(i).theta()])
             for i in range(len(self._estimate))
@@ -322,6 +341,8 @@ class VisitGraph:
     def finalize(self) -> None:
         if self.loops:
             self._optimize()
+        if self.cfg.refine_rounds:
+            self.refine_stats = refine_visits(self)
 
     def estimates(self) -> np.ndarray:
         return np.array(self._estimate)
@@ -329,6 +350,100 @@ class VisitGraph:
     @property
     def fe(self) -> list[np.ndarray]:
         return self._fe
+
+
+def refine_visits(vg: VisitGraph, rounds: int | None = None) -> list[dict]:
+    """The final multi-view refinement (Cartographer's final optimisation in spirit): each
+    round, every visit's cloud is registered by PLICP against the clouds of the other
+    visits near it (``refine_radius``, at least ``min_path`` of path away, the nearest
+    ``refine_refs``) fused at their current optimised poses, starting from its own; an
+    accepted registration (within ``refine_max_m`` / ``refine_max_deg`` of the estimate,
+    ``refine_min_inliers`` of its overlapping points on the reference) becomes an edge to
+    each reference visit (Cauchy kernel, the registration's noise split over them), and
+    the graph (odometry and loop edges, and this round's edges: the last round's are
+    dropped, they measured the poses before) is re-optimised. Returns per round the
+    visits registered, accepted, and the median / max correction (m)."""
+    c = vg.cfg
+    rounds = c.refine_rounds if rounds is None else rounds
+    loops = vg.loop_search
+    ids = list(range(len(vg.fe)))
+    path = np.array([loops.path[i] for i in ids])
+    clouds = [loops.clouds[i] for i in ids]
+    stats: list[dict] = []
+    for _ in range(rounds):
+        X = vg.estimates()
+        world = [transform2d(X[i], clouds[i]) for i in ids]
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(vg.graph)
+        tried = accepted = 0
+        moves: list[float] = []
+        for i in ids:
+            target = clouds[i]
+            if len(target) < c.min_overlap:
+                continue
+            d = np.linalg.norm(X[:, :2] - X[i, :2], axis=1)
+            ok = (np.abs(path - path[i]) >= c.min_path) & (d <= c.refine_radius)
+            refs = [j for j in np.argsort(d) if ok[j]][: c.refine_refs]
+            if not refs:
+                continue
+            inv = inverse2d(X[i])
+            pts = np.vstack([transform2d(inv, world[j]) for j in refs])
+            owner = np.concatenate([np.full(len(world[j]), j) for j in refs])
+            ref, first = _line_reference(pts, c.resolution)
+            if ref is None:
+                continue
+            tried += 1
+            res = plicp(target, ref, np.zeros(3), c.plicp)
+            corr = res.pose
+            if (
+                np.hypot(corr[0], corr[1]) > c.refine_max_m
+                or abs(np.degrees(corr[2])) > c.refine_max_deg
+            ):
+                continue
+            dist, near_idx = ref.tree.query(
+                transform2d(corr, target), distance_upper_bound=c.overlap_m
+            )
+            near = np.isfinite(dist)
+            if near.sum() < c.min_overlap or np.mean(dist[near] < c.inlier_m) < (
+                c.refine_min_inliers
+            ):
+                continue
+            # the reference visits the inliers fell on (cells keep their first owner)
+            good = near & (dist < c.inlier_m)
+            seen = owner[first][near_idx[good]]
+            js, n = np.unique(seen, return_counts=True)
+            js = js[n >= max(10, 0.1 * n.max())]
+            accepted += 1
+            moves.append(float(np.hypot(corr[0], corr[1])))
+            Xi = compose2d(X[i], corr)
+            sig = np.array([c.refine_sigma_m, c.refine_sigma_m, np.radians(c.refine_sigma_deg)])
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(c.robust_param),
+                gtsam.noiseModel.Diagonal.Sigmas(sig * np.sqrt(len(js))),
+            )
+            for j in js:
+                z = compose2d(inverse2d(X[int(j)]), Xi)
+                graph.add(gtsam.BetweenFactorPose2(int(j), i, gtsam.Pose2(*z), noise))
+        vg._optimize(graph)
+        stats.append({"registered": tried, "accepted": accepted,
+                      "median_m": float(np.median(moves)) if moves else 0.0,
+                      "max_m": float(np.max(moves)) if moves else 0.0})  # fmt: skip
+    return stats
+
+
+def _line_reference(pts: np.ndarray, resolution: float) -> tuple[LineReference | None, np.ndarray]:
+    """Lines of a cloud's cell means (``resolution``) as a PLICP reference (None when too
+    small), and for each of its points (one per cell) the index of a point of ``pts`` in
+    that cell."""
+    if len(pts) < 20:
+        return None, np.zeros(0, dtype=np.int64)
+    cells = np.floor(pts / resolution).astype(np.int64)
+    _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    count = np.bincount(inverse)
+    mean = np.column_stack([np.bincount(inverse, pts[:, d]) / count for d in range(2)])
+    lines = extract_lines(mean, resolution, LineConfig(), count.astype(float))
+    return LineReference.from_lines(lines), first
 
 
 def run_visit_graph(

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from frontends.dpcr2d import Dpcr2d, Dpcr2dConfig, matrix_to_pose2
+from slam.errors import ConfigError
 from slam.factors import GraphView
 from slam.mapping.grid2d import compose2d, inverse2d
 from slam.pipeline import keyframe_cloud
@@ -63,6 +64,26 @@ def test_visit_graph_rejects_ambiguous_matches(rooms):
     assert vg.loops == [] and len(vg.events) > 10
     assert all(e.reason == "ambiguous" for e in vg.events)
     assert np.allclose(poses, fe, atol=1e-6)
+
+
+def test_final_refinement_pulls_the_visits_onto_each_other(rooms):
+    """``refine_rounds``: every visit re-registered against the other visits near it at
+    their optimised poses, those as edges, re-optimised. Measured: mean error over the
+    run 0.108 -> 0.091 m, last 100 scans 0.136 -> 0.107 m at most; 15 of 15 visits
+    registered each round, the last round's median correction 7 mm (converged). Without
+    any loop edge, refinement alone: mean 0.362 -> 0.331 m (its window, +-0.3 m around
+    the estimate, is no loop search)."""
+    _, scans, gt, fe = rooms
+    base, _ = run_visit_graph(fe, scans, VisitGraphConfig())
+    poses, vg = run_visit_graph(fe, scans, VisitGraphConfig(refine_rounds=3))
+    err_base = np.hypot(*(base - gt)[:, :2].T)
+    err = np.hypot(*(poses - gt)[:, :2].T)
+    assert err.mean() < err_base.mean() - 0.01 and err[-100:].max() < err_base[-100:].max()
+    assert len(vg.refine_stats) == 3
+    assert all(r["accepted"] >= 10 for r in vg.refine_stats)
+    assert vg.refine_stats[-1]["median_m"] < 0.02
+    with pytest.raises(ConfigError):
+        VisitGraphConfig(refine_rounds=-1)
 
 
 def test_dpcr2d_visit_keyframes_carry_the_visit_clouds(rooms):
