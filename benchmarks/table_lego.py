@@ -19,6 +19,12 @@ with ``enabled: true`` and every factor plugin other than ``prior`` / ``odometry
 enabled is switched off in turn (``--set <section>.enabled=false``), so the ablation
 follows the recipe as its modules land. The ground factor is also added to the other
 front ends (``--set factors.ground.enabled=true``) when a ``ground`` factor plugin exists.
+The ground factor is a back-end plugin and the front end never sees the back end
+(DESIGN.md), so a "+ ground factor" row of a config that also runs plainly is not a second
+front-end run: the plain run records its front end (``loop_replay.Recorder``, ``record.npz``
+in its folder) and the ground row replays that recording with the factor on
+(``loop_replay.replay``; seconds instead of ~11 CPU minutes on the whole S route; ``fps`` is
+then the recorded run's). ``--no-replay`` runs the ground rows in full.
 
 Loop runs (a ``loops.csv`` in the run folder) get the loop table: APE of the same run's
 odometry (``odometry.tum``) and optimised trajectory, loops, and false loops counted against
@@ -40,6 +46,7 @@ import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -211,17 +218,28 @@ def run_job(job: dict) -> dict:
             return {**row, **keep, "reused": True}
     if job.get("tabulate_only"):
         return {**job, "not_run": True}
+    if job.get("replay_of"):
+        return replay_job(job)
     config = load_config(job["config"], job["overrides"])
     if job["frames"]:
         config.source.max_frames = job["frames"]
     out = Path(job["out"])
     t0 = time.perf_counter()
     try:
-        summary = run_one(Path(job["bag"]), config, out, gt=Path(job["gt"]), quiet=True)
+        with recording(job.get("record")) as recorder:
+            summary = run_one(Path(job["bag"]), config, out, gt=Path(job["gt"]), quiet=True)
+        if recorder is not None:
+            save_recording(recorder, Path(job["record"]), job)
     except Exception as exc:  # noqa: BLE001 - one failing run must not end the table
         return {**job, "error": f"{type(exc).__name__}: {exc}"}
     wall = time.perf_counter() - t0
     metrics = json.loads((out / "metrics.json").read_text())
+    return finish_row(job, summary, metrics, wall)
+
+
+def finish_row(job: dict, summary: dict, metrics: dict, wall: float) -> dict:
+    """The table row of a finished run (also saved as ``row.json`` in its folder)."""
+    out = Path(job["out"])
     res = summary.get("eval")
     row = {
         **job,
@@ -243,13 +261,97 @@ def run_job(job: dict) -> dict:
             **z_errors(res),
         )
         row.update(loop_columns(out, Path(job["gt"])))
-    saved.write_text(json.dumps(row, indent=2, default=str))
+    (out / "row.json").write_text(json.dumps(row, indent=2, default=str))
     return row
 
 
+@contextmanager
+def recording(path: str | None):
+    """While active, the front end every Pipeline instantiates is wrapped in a
+    ``loop_replay.Recorder`` (yielded; None without ``path``): run_one builds its own
+    Pipeline, so its plugin lookup is wrapped for the duration."""
+    if path is None:
+        yield None
+        return
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from loop_replay import Recorder
+
+    from slam import plugins
+
+    holder: list = []
+    original = plugins.instantiate
+
+    def instantiate(group, *args, **kwargs):
+        obj = original(group, *args, **kwargs)
+        if group == "slam.frontends":
+            obj = Recorder(obj)
+            holder.append(obj)
+        return obj
+
+    plugins.instantiate = instantiate
+    try:
+        yield holder
+    finally:
+        plugins.instantiate = original
+
+
+def save_recording(holder: list, path: Path, job: dict) -> None:
+    """The recorded front end output in loop_replay's .npz format."""
+    if len(holder) != 1:
+        raise RuntimeError(f"expected one recorded front end, got {len(holder)}")
+    rec = holder[0]
+    rows = rec.rows
+    idx = np.array(sorted(rec.clouds), dtype=np.int64)
+    np.savez(
+        path,
+        stamps=np.array([r["stamp"] for r in rows]),
+        poses=np.stack([r["pose"] for r in rows]),
+        is_kf=np.array([r["kf"] for r in rows]),
+        relative=np.stack([r["relative"] for r in rows]),
+        info=np.stack([r["info"] for r in rows]),
+        cloud_frames=idx,
+        cloud_sizes=np.array([len(rec.clouds[i]) for i in idx], dtype=np.int64),
+        clouds=np.concatenate([rec.clouds[i] for i in idx]) if len(idx) else np.zeros((0, 3)),
+        extras=json.dumps([r["extras"] for r in rows]),
+        meta=json.dumps({"bag": job["bag"], "config": job["config"],
+                         "overrides": job["overrides"]}),
+    )  # fmt: skip
+
+
+def replay_job(job: dict) -> dict:
+    """A back-end variant (the ground factor) of a recorded run: the recording replayed
+    with the job's overrides; the row as ``run_job``'s, fps the recorded run's."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from loop_replay import load_recording, replay
+
+    from slam.run import evaluate_run
+
+    src = Path(job["replay_of"])
+    if not src.is_file():
+        return {**job, "error": f"no recording {src} (its plain run failed?)"}
+    out = Path(job["out"])
+    t0 = time.perf_counter()
+    try:
+        rec = load_recording(src)  # made with the same --frames
+        replay(rec, job["config"], job["overrides"], out, None)
+        res = evaluate_run(out, Path(job["gt"]), None, title=job["label"])
+    except Exception as exc:  # noqa: BLE001 - one failing run must not end the table
+        return {**job, "error": f"{type(exc).__name__}: {exc}"}
+    wall = time.perf_counter() - t0
+    metrics = json.loads((out / "metrics.json").read_text())
+    plain = src.parent / "row.json"
+    if plain.is_file():
+        metrics["frames_per_second"] = json.loads(plain.read_text()).get("fps")
+    n = len(rec["stamps"])
+    summary = {"frames": n, "keyframes": int(np.sum(rec["is_kf"])), "stopped_by": None,
+               "eval": res}  # fmt: skip
+    return {**finish_row(job, summary, metrics, wall), "replayed": str(src)}
+
+
 def jobs_for(
-    scene: str, seq, configs, frames, out: Path, ablation: bool, ground_configs=()
-) -> list[dict]:
+    scene: str, seq, configs, frames, out: Path, ablation: bool, ground_configs=(),
+    replay_ground: bool = True,
+) -> list[dict]:  # fmt: skip
     base = {"scene": scene, "bag": str(seq.bag), "gt": str(seq.ground_truth), "frames": frames}
     jobs = []
 
@@ -268,6 +370,10 @@ def jobs_for(
         for name in configs:
             if name in ground_configs:
                 add(f"{name} + ground factor", name, ground, "ground")
+                if replay_ground:  # the plain run records its front end, this replays it
+                    plain = next(j for j in jobs if j["label"] == name)
+                    plain["record"] = str(Path(plain["out"]) / "record.npz")
+                    jobs[-1]["replay_of"] = plain["record"]
     return jobs
 
 
@@ -438,6 +544,12 @@ def main(argv: list[str] | None = None) -> int:
         "so that no other process's pruning of ~/.cache removes them mid-run)",
     )
     ap.add_argument("--plan-only", action="store_true", help="only draw the floor plan")
+    ap.add_argument(
+        "--no-replay",
+        action="store_true",
+        help="run the ground-factor rows in full instead of replaying the plain run's "
+        "recorded front end",
+    )
     args = ap.parse_args(argv)
     if args.figures:
         print(f"figure: {plan_figure(Path(args.figures) / 'building_plan.png')}")
@@ -462,7 +574,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = ensure_sequence(scene, frames=frames, cache_dir=Path(args.cache_dir or out / "sim"))
         abl = not args.no_ablation and scene in args.ablation_scenes
         ground = args.ground_configs if scene in args.ablation_scenes else ()
-        jobs += jobs_for(scene, seq, configs, args.frames, out, abl, ground)
+        jobs += jobs_for(scene, seq, configs, args.frames, out, abl, ground, not args.no_replay)
     for i, job in enumerate(jobs):
         job["index"] = i  # the tables keep this order
     # Main configs first, then the ablation, then the ground factor; slowest first.
@@ -474,15 +586,21 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(jobs)} runs on {args.workers} worker(s)", file=sys.stderr)
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")
+    runs = [j for j in jobs if not j.get("replay_of")]
+    replays = [j for j in jobs if j.get("replay_of")]  # after the runs they replay
+    rows = []
+
+    def done(row: dict) -> None:
+        rows.append(row)
+        status = row.get("error") or f"RMSE {row.get('ape', {}).get('rmse', float('nan')):.3f} m"
+        print(f"[{time.perf_counter() - t0:6.0f} s] {row['scene']} {row['label']}: {status}",
+              file=sys.stderr, flush=True)  # fmt: skip
+
     with ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
-        rows = []
-        for row in pool.map(run_job, jobs):
-            rows.append(row)
-            status = (
-                row.get("error") or f"RMSE {row.get('ape', {}).get('rmse', float('nan')):.3f} m"
-            )
-            print(f"[{time.perf_counter() - t0:6.0f} s] {row['scene']} {row['label']}: {status}",
-                  file=sys.stderr, flush=True)  # fmt: skip
+        for row in pool.map(run_job, runs):
+            done(row)
+        for row in pool.map(run_job, replays):
+            done(row)
     rows.sort(key=lambda r: r["index"])
     out.mkdir(parents=True, exist_ok=True)
     (out / "table_lego.json").write_text(json.dumps(rows, indent=2, default=str))
