@@ -60,6 +60,8 @@ class Recorder:
                 "kf": bool(odom.is_keyframe),
                 "relative": np.asarray(odom.relative, float),
                 "info": np.asarray(odom.info, float),
+                # the keyframe information before the front end's odometry_ambiguity loosened it
+                "info_raw": np.asarray(odom.extras.get("_info_before_ambiguity", odom.info), float),
                 "extras": {k: float(v) for k, v in extras.items()},
             }
         )
@@ -90,6 +92,7 @@ def record(bag: Path, config: str, out: Path, overrides: list[str], max_frames: 
         is_kf=np.array([r["kf"] for r in rows]),
         relative=np.stack([r["relative"] for r in rows]),
         info=np.stack([r["info"] for r in rows]),
+        info_raw=np.stack([r["info_raw"] for r in rows]),
         cloud_frames=idx,
         cloud_sizes=sizes,
         clouds=np.concatenate([rec.clouds[i] for i in idx]) if len(idx) else np.zeros((0, 3)),

@@ -28,6 +28,11 @@ import numpy as np
 from slam.deskew import deskew, se3_log, time_from_firing_order
 from slam.features.thinning import voxel_thin
 from slam.frontend import KeyframeConfig, is_new_keyframe
+from slam.registration.ambiguity import (
+    OdometryAmbiguityConfig,
+    loosened_information,
+    odometry_ambiguity,
+)
 from slam.registration.gicp import RegistrationError, RegistrationResult, se3_exp
 from slam.registration.information import (
     Information,
@@ -94,6 +99,11 @@ class CommonConfig:
     normal came from its slow start lost 75 of 100 frames and ended 30 m off, every
     rejected registration right (APE 1.9 cm with the gate's fitness test off); with 0.5 s
     it lost 4 (4.8 cm).
+    odometry_ambiguity: degeneracy-aware keyframe odometry information (off by default;
+    ``slam.registration.ambiguity.OdometryAmbiguityConfig``): a keyframe whose alignment
+    is not unique along the registration's weakest horizontal direction (the slide test
+    against the previous keyframes' clouds) gets a loose sigma along it, so that a graph
+    with loops puts a corridor slip where it happened. The poses are not affected.
     """
 
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -115,6 +125,7 @@ class CommonConfig:
     gap_hypotheses_after: float = 3.0
     gap_hypothesis_step: float = 2.0
     gap_acceleration: float = 3.0
+    odometry_ambiguity: OdometryAmbiguityConfig = field(default_factory=OdometryAmbiguityConfig)
 
 
 @dataclass
@@ -172,6 +183,11 @@ class ScanToMapFrontend:
         self.trusted_stamp: float | None = None
         self.trusted_frames_ago = 0
         self._gaps: deque[float] = deque(maxlen=100)  # recent stamp gaps (s)
+        # (T_odom_sensor, cloud in the sensor frame) of the last keyframes: the slide test's
+        # target (odometry_ambiguity)
+        self._kf_clouds: deque[tuple[np.ndarray, np.ndarray]] = deque(
+            maxlen=common.odometry_ambiguity.window
+        )
 
     # ------------------------------------------------------------------ to implement
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
@@ -250,6 +266,34 @@ class ScanToMapFrontend:
         cov = cov + np.diag([s_r**2] * 3 + [s_t**2] * 3)
         info = np.linalg.inv(cov)
         return 0.5 * (info + info.T)
+
+    def _ambiguity_information(
+        self, info: np.ndarray, H: np.ndarray, pose: np.ndarray, cloud: np.ndarray, extras: dict
+    ) -> np.ndarray:
+        """A keyframe's odometry information after the slide test (``odometry_ambiguity``)
+        of its cloud against the previous keyframes' (moved into its frame by the odometry);
+        records ``ambiguity`` (ratio), ``ambiguous`` (0/1) and the tested axis
+        (``ambiguity_axis_x/y``, sensor frame) in ``extras``."""
+        c = self._c.odometry_ambiguity
+        t = time.perf_counter()
+        inv = np.linalg.inv(pose)
+        parts = []
+        for T_kf, pts in self._kf_clouds:
+            T = inv @ T_kf
+            parts.append(pts @ T[:3, :3].T + T[:3, 3])
+        target = np.concatenate(parts) if parts else np.zeros((0, 3))
+        amb = odometry_ambiguity(cloud, target, H, c)
+        extras.update(
+            ambiguity=amb.ratio,
+            ambiguous=int(amb.ambiguous),
+            ambiguity_axis_x=float(amb.axis[0]),
+            ambiguity_axis_y=float(amb.axis[1]),
+        )
+        if amb.ambiguous:
+            extras["_info_before_ambiguity"] = info
+            info = loosened_information(info, amb.axis, c.sigma)
+        extras["ambiguity_ms"] = (time.perf_counter() - t) * 1e3
+        return info
 
     # ------------------------------------------------------------------ tracking
     def _judge(self, est: Estimate, stamp: float, T_pred: np.ndarray) -> str | None:
@@ -464,6 +508,12 @@ class ScanToMapFrontend:
             kept = voxel_thin(filtered, self._c.cloud_voxel)
             cloud = np.ascontiguousarray(filtered[kept], dtype=np.float32)
             timings["cloud_ms"] = (time.perf_counter() - t) * 1e3
+        extras["ambiguous"] = 0
+        if is_kf and self._c.odometry_ambiguity.enabled:
+            if not first and est.H is not None and len(self._kf_clouds):
+                info = self._ambiguity_information(info, est.H, pose, cloud, extras)
+            if len(cloud):
+                self._kf_clouds.append((pose.copy(), np.asarray(cloud, dtype=np.float64)))
         if is_kf:
             self.T_kf = pose.copy()
             self.n_keyframes += 1

@@ -38,6 +38,16 @@ import numpy as np
 import scipy.fft
 import small_gicp
 
+from slam.registration.ambiguity import (
+    MIN_JUDGED_POINTS,
+    STEEP,
+    alignment_score,
+    ambiguous_axis,
+    free_information,
+    slide_shifts,
+)
+from slam.registration.ambiguity import Prepared as _Prepared
+from slam.registration.ambiguity import prepare as _prepare
 from slam.registration.information import InformationConfig, information_from_hessian
 
 # lambda_min / (lambda_1 + lambda_2 + lambda_3) of a point's neighbourhood below which it lies on
@@ -45,7 +55,6 @@ from slam.registration.information import InformationConfig, information_from_he
 # scatter such as a tree crown: up to 1/3)
 MAX_SURFACE_VARIATION = 0.05
 SHAPE_NEIGHBOURS = 10
-MIN_JUDGED_POINTS = 50
 COARSE_REGISTRATIONS = ("gicp", "vgicp")
 
 
@@ -81,7 +90,8 @@ class VerifyParams:
     slid along its weakest horizontal direction by ambiguity_min_shift..ambiguity_max_shift m
     (steps of ambiguity_step m, both ways); if some slide keeps ambiguity_ratio of the
     result's overlap, the alignment is not unique along that axis (a plain or periodic
-    corridor), and the loop's information along it is set to free_sigma m (0 ratio: off)."""
+    corridor), and the loop's information along it is set to free_sigma m (0 ratio: off;
+    slam.registration.ambiguity, shared with the front ends' odometry information)."""
 
     voxel: float = 0.25
     max_correspondence: float = 1.0
@@ -278,23 +288,6 @@ def bev_translation(
 # ----------------------------------------------------------------------------- fine judge
 
 
-@dataclass
-class _Prepared:
-    """A cloud downsampled at one voxel size with its normals/covariances and KD-tree."""
-
-    cloud: small_gicp.PointCloud
-    tree: small_gicp.KdTree
-    points: np.ndarray
-    normals: np.ndarray
-
-
-def _prepare(points: np.ndarray, voxel: float, num_threads: int) -> _Prepared:
-    cloud, tree = small_gicp.preprocess_points(points, voxel, num_threads=num_threads)
-    return _Prepared(
-        cloud, tree, np.asarray(cloud.points())[:, :3], np.asarray(cloud.normals())[:, :3]
-    )
-
-
 def _shape_covariances(prepared: _Prepared, query_idx: np.ndarray, k: int) -> np.ndarray:
     """(M, 3, 3) covariance (m^2) of the k nearest points of each queried point, searched in
     the prepared cloud's own KD-tree (as slam.features.curvature.local_covariances, without
@@ -324,7 +317,7 @@ def judged_indices(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> 
     are examined (an even subsample: the score is a share, known to ~1 % from 3000 points).
     """
     pts = source.points
-    steep_idx = np.flatnonzero(np.abs(source.normals @ R.T[:, 2]) < 0.7)
+    steep_idx = np.flatnonzero(np.abs(source.normals @ R.T[:, 2]) < STEEP)
     if len(steep_idx) < MIN_JUDGED_POINTS:
         return np.arange(len(pts))
     if len(steep_idx) > max_points:
@@ -337,88 +330,6 @@ def judged_indices(source: _Prepared, R: np.ndarray, max_points: int = 3000) -> 
     if structured.sum() >= MIN_JUDGED_POINTS:
         return steep_idx[structured]
     return steep_idx
-
-
-def alignment_score(
-    judged: np.ndarray, target: _Prepared, T: np.ndarray, p: VerifyParams
-) -> tuple[float, float]:
-    """(overlap 0-1, fitness m) of ``judged`` source points moved by T onto the target.
-
-    A point is an inlier when its nearest target point lies within
-    max(inlier_distance, tan(beam_gap) x range) and its distance to that point's plane
-    within plane_tolerance + plane_range_ratio x range (range: from the target's sensor).
-    fitness: RMS point-to-plane distance of the inliers (inf without inliers).
-    """
-    moved = judged @ T[:3, :3].T + T[:3, 3]
-    idx, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=p.num_threads)
-    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-    sq = np.asarray(sq, dtype=np.float64).reshape(-1)
-    if len(sq) == 0:
-        return 0.0, float("inf")
-    rng = np.linalg.norm(moved, axis=1)
-    radius = np.maximum(p.inlier_distance, np.tan(np.radians(p.beam_gap_deg)) * rng)
-    found = (idx >= 0) & (sq < radius**2)
-    k = np.where(found, idx, 0)
-    plane = np.abs(np.einsum("ij,ij->i", moved - target.points[k], target.normals[k]))
-    inl = found & (plane < p.plane_tolerance + p.plane_range_ratio * rng)
-    overlap = float(inl.mean())
-    fitness = float(np.sqrt(np.mean(plane[inl] ** 2))) if inl.any() else float("inf")
-    return overlap, fitness
-
-
-def weakest_horizontal(H: np.ndarray) -> np.ndarray:
-    """Unit (3,) direction in the source frame, horizontal, that the registration Hessian
-    (6x6, rotation first, right perturbation T Exp(delta)) constrains least: the weaker
-    eigenvector of the horizontal 2x2 block of the translation information with the
-    rotation marginalised out (Schur complement; Zhang et al. 2016, the eigenvalue test)."""
-    H = 0.5 * (np.asarray(H, dtype=np.float64) + np.asarray(H, dtype=np.float64).T)
-    if not np.all(np.isfinite(H)):
-        return np.array([1.0, 0.0, 0.0])
-    Hrr, Hrt, Htt = H[:3, :3], H[:3, 3:], H[3:, 3:]
-    S = Htt - Hrt.T @ np.linalg.pinv(Hrr) @ Hrt
-    _, vec = np.linalg.eigh(S[:2, :2])
-    return np.array([vec[0, 0], vec[1, 0], 0.0])
-
-
-def ambiguous_axis(
-    judged: np.ndarray,
-    normals: np.ndarray,
-    target: _Prepared,
-    T: np.ndarray,
-    H: np.ndarray,
-    p: VerifyParams,
-) -> tuple[np.ndarray, float]:
-    """Whether the alignment T is unique along its weakest horizontal direction v.
-
-    Only surfaces facing v (judged source points with |normal . v| > 0.5: door jambs,
-    pillars, the end of a corridor) fix the position along it, so only they are scored
-    (:func:`alignment_score`): at the result, and slid by d along v (source frame,
-    T Exp(d v)) for ambiguity_min_shift <= |d| <= ambiguity_max_shift. The ambiguity is the
-    best slid overlap over the result's: a periodic corridor meets its next bay again (~1),
-    a room's end walls miss at a metre (< 0.5). Fewer than MIN_JUDGED_POINTS such points (a
-    plain corridor) is degeneracy itself (ambiguity 1). Returns (v in the target frame
-    (1, 3), or (0, 3) when unique; ambiguity).
-    """
-    none = np.zeros((0, 3))
-    if p.ambiguity_ratio <= 0 or len(judged) == 0:
-        return none, 0.0
-    v = weakest_horizontal(H)
-    facing = np.abs(np.asarray(normals) @ v) > 0.5
-    axis = (T[:3, :3] @ v)[None, :]
-    if facing.sum() < MIN_JUDGED_POINTS:
-        return axis, 1.0
-    pts = judged[facing]
-    base = alignment_score(pts, target, T, p)[0]
-    if base <= 0:
-        return axis, 1.0
-    steps = np.arange(p.ambiguity_min_shift, p.ambiguity_max_shift + 1e-9, p.ambiguity_step)
-    best = 0.0
-    for d in np.concatenate([steps, -steps]):
-        Ts = np.array(T, dtype=np.float64)
-        Ts[:3, 3] = T[:3, 3] + T[:3, :3] @ (d * v)
-        best = max(best, alignment_score(pts, target, Ts, p)[0])
-    ratio = best / base
-    return (axis if ratio >= p.ambiguity_ratio else none), float(ratio)
 
 
 def tilt_floor(info: np.ndarray, min_sigma_tilt: float) -> np.ndarray:
@@ -441,19 +352,6 @@ def tilt_floor(info: np.ndarray, min_sigma_tilt: float) -> np.ndarray:
         d[i] = max(1.0, min_sigma_tilt / sig) if sig > 0 else 1.0
     C = C * d[:, None] * d[None, :]
     out = np.linalg.inv(C)
-    return 0.5 * (out + out.T)
-
-
-def free_information(info: np.ndarray, axes_source: np.ndarray, free_sigma: float) -> np.ndarray:
-    """``info`` (6x6, rotation first) with the translation directions ``axes_source`` (k, 3,
-    source frame: the loop factor's tangent) left to the other factors: their information
-    becomes 1 / free_sigma^2 and their coupling to the other directions is removed."""
-    out = np.asarray(info, dtype=np.float64)
-    for a in np.asarray(axes_source, dtype=np.float64).reshape(-1, 3):
-        u = np.zeros(6)
-        u[3:] = a / np.linalg.norm(a)
-        P = np.eye(6) - np.outer(u, u)
-        out = P @ out @ P + np.outer(u, u) / free_sigma**2
     return 0.5 * (out + out.T)
 
 
@@ -600,7 +498,10 @@ def verify(
     info = tilt_floor(info, np.radians(p.min_sigma_tilt_deg))
     free, ambiguity = np.zeros((0, 3)), 0.0
     if fine.converged and p.ambiguity_ratio > 0:
-        free, ambiguity = ambiguous_axis(judged, judged_normals, ft, T, np.asarray(fine.H), p)
+        shifts = slide_shifts(p.ambiguity_min_shift, p.ambiguity_max_shift, p.ambiguity_step)
+        free, ambiguity = ambiguous_axis(
+            judged, judged_normals, ft, T, np.asarray(fine.H), p, p.ambiguity_ratio, shifts
+        )
         if len(free):  # the factor's tangent is the source frame: axes back from the target
             info = free_information(info, free @ T[:3, :3], p.free_sigma)
     reason = ""
