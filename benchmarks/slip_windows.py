@@ -10,7 +10,11 @@ the plain windows and over all the others separate the corridor slips from the e
 elsewhere (docs/lego_lpb.md, session 8 and 9).
 
     .venv/bin/python benchmarks/slip_windows.py GT.tum label=RUN_DIR [label=RUN_DIR ...] \\
-        [--window 100] [--show 0.8] [--json OUT.json]
+        [--window 100] [--show 0.8] [--json OUT.json] [--figure OUT.png]
+
+``--figure``: the along-track error per window of every run (plain windows shaded) over
+the z error of its optimised trajectory (``trajectory.tum``, SE(3)-aligned as in the
+tables) against time.
 """
 
 from __future__ import annotations
@@ -83,6 +87,35 @@ def windows(est_path: Path, gt_path: Path, window: int = 100) -> dict:
     }
 
 
+def figure(res: dict, runs: dict[str, Path], gt: Path, window: int, path: Path) -> Path:
+    """Along-track error per window (top) and aligned z error over time (bottom)."""
+    from slam.eval.metrics import evaluate
+    from slam.eval.plots import evo_plot, save_png
+
+    evo_plot()  # Agg backend, evo's style
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(10.0, 6.4), dpi=90, sharex=False)
+    first = next(iter(res.values()))
+    for s, p in zip(first["starts"], first["plain"], strict=True):
+        if p:
+            top.axvspan(s, s + window, color="0.85", lw=0)
+    for label, r in res.items():
+        top.plot(np.array(r["starts"]) + window / 2, r["along"], ".-", lw=1, label=label)
+        ev = evaluate(runs[label] / "trajectory.tum", gt)
+        dz = ev.est_poses[:, 2, 3] - ev.gt_poses[:, 2, 3]
+        bottom.plot(ev.stamps - ev.stamps[0], dz, lw=1, label=label)
+    top.axhline(0.0, color="k", lw=0.5)
+    top.set_xlabel(f"frame (window of {window}; grey: plain corridor stretch)")
+    top.set_ylabel("along-track error (m)")
+    top.legend(fontsize=7, ncol=4)
+    bottom.axhline(0.0, color="k", lw=0.5)
+    bottom.set_xlabel("t (s)")
+    bottom.set_ylabel("z error, aligned (m)")
+    fig.tight_layout()
+    return save_png(fig, path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("gt", type=Path)
@@ -90,11 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=int, default=100)
     ap.add_argument("--show", type=float, default=0.8, help="list windows with |error| above")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--figure", type=Path, help="PNG: slips per window and z over time")
     args = ap.parse_args(argv)
-    res = {}
+    res, runs = {}, {}
     for spec in args.runs:
         label, _, run = spec.partition("=")
-        res[label] = windows(Path(run) / "odometry.tum", args.gt, args.window)
+        runs[label] = Path(run)
+        res[label] = windows(runs[label] / "odometry.tum", args.gt, args.window)
     print("| run | sum \\|along\\| plain (m) | sum \\|along\\| elsewhere (m) | max elsewhere (m) |")
     print("|:---|---:|---:|---:|")
     for label, r in res.items():
@@ -108,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label}: {' '.join(big)}")
     if args.json:
         args.json.write_text(json.dumps(res, indent=1))
+    if args.figure:
+        print(f"figure: {figure(res, runs, args.gt, args.window, args.figure)}")
     return 0
 
 
