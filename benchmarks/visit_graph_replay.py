@@ -30,7 +30,13 @@ from slam.eval.map2d import (
 from slam.eval.metrics import evaluate, evaluate_arrays, read_trajectory
 from slam.io.carmen import CarmenSource
 from slam.mapping.grid2d import matrix_to_pose2, pose2_to_matrix
-from slam.visit_graph import VisitGraphConfig, run_visit_graph
+from slam.visit_graph import (
+    VisitGraphConfig,
+    offset_stats,
+    run_visit_graph,
+    vertex_scans,
+    visit_offsets,
+)
 
 
 def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
@@ -50,8 +56,14 @@ def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarr
 def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
     """(K, 3) poses of a TUM trajectory at ``stamps`` (every scan must be in it)."""
     st, T = read_trajectory(path)
-    by = {round(float(s), 4): k for k, s in enumerate(st)}
-    return np.array([matrix_to_pose2(T[by[round(float(s), 4)]]) for s in stamps])
+    order = np.argsort(st)
+    st = np.asarray(st, dtype=np.float64)[order]
+    pos = np.clip(np.searchsorted(st, stamps), 1, len(st) - 1)
+    pos = np.where(np.abs(st[pos - 1] - stamps) < np.abs(st[pos] - stamps), pos - 1, pos)
+    gap = np.abs(st[pos] - stamps)
+    if gap.max() > 1e-3:
+        raise SystemExit(f"{path}: no pose within 1 ms of stamp {stamps[np.argmax(gap)]:.6f}")
+    return np.array([matrix_to_pose2(T[order[k]]) for k in pos])
 
 
 def walls(poses: np.ndarray, scans: list[np.ndarray], every: int = 2) -> dict:
@@ -113,8 +125,21 @@ def main(argv: list[str] | None = None) -> None:
         "front_end": walls(fe, scans),
         "floor_50": walls(fe[:50], scans[:50], every=1)["median"],
     }
+    # how far each visit lies from the others where they see the same walls (m, its own
+    # cloud registered on theirs), at the vertices of each trajectory
+    anchors = vertex_scans(len(scans), cfg.visit_scans)
+    clouds = [vg.loop_search.clouds[i] for i in range(len(anchors))]
+    path = np.array([vg.loop_search.path[i] for i in range(len(anchors))])
+
+    def offsets(P: np.ndarray) -> dict:
+        return offset_stats(visit_offsets(P[anchors], clouds, path, cfg))
+
+    row["visit_graph"]["offsets"] = offsets(poses)
+    row["front_end"]["offsets"] = offsets(fe)
     if not args.skip_run_walls and (args.run / "trajectory.tum").is_file():
-        row["run_trajectory"] = walls(poses_at(args.run / "trajectory.tum", stamps), scans)
+        run_poses = poses_at(args.run / "trajectory.tum", stamps)
+        row["run_trajectory"] = walls(run_poses, scans)
+        row["run_trajectory"]["offsets"] = offsets(run_poses)
     floor = windowed_floor(fe[::2], scans[::2], window=50, every=1)
     carved = windowed_floor(fe[::2], scans[::2], window=50, every=1, carve=True)
     row["window_floor"] = floor.median
