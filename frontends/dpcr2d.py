@@ -217,6 +217,10 @@ class Dpcr2d:
         )
         self._since_kf = 0
         self.visit_points: list[np.ndarray] = []
+        # each visit's own scans (pose in the keyframe's frame, points float32): the
+        # probabilistic map.pgm (visit_grid with free space)
+        self.visit_scans: list[list[tuple[np.ndarray, np.ndarray]]] = []
+        self._visit_scan_bytes = 0
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -228,6 +232,7 @@ class Dpcr2d:
         }
         if self.cfg.visit_scans:  # the visit graph's clouds (float32 x, y as stored)
             out["visit_clouds"] = sum(8 * len(p) for p in self.visit_points)
+            out["visit_scans"] = self._visit_scan_bytes
         return out
 
     def region_placements(self, estimates: dict[int, np.ndarray]) -> dict[int, np.ndarray] | None:
@@ -268,11 +273,34 @@ class Dpcr2d:
         else:
             self.pose = compose2d(delta, self.pose)
 
-    def visit_grid(self, estimates: dict[int, np.ndarray]) -> OccupancyGrid | None:
-        """With ``visit_scans``: the map re-fused from the visits, each keyframe's visit
-        cloud (hits) at its optimised pose (4x4, by keyframe id); None otherwise."""
+    def visit_grid(
+        self, estimates: dict[int, np.ndarray], free_space: bool = True
+    ) -> OccupancyGrid | None:
+        """With ``visit_scans``: the map re-fused from the visits at their optimised poses
+        (4x4, by keyframe id); None otherwise. ``free_space`` (map.pgm): every scan of
+        each visit with hits and misses along its beams (``slam.mapping.carve2d``, the
+        region grid's log-odds, no sub-cell means), so that the map has free space as
+        map_server reads it; False: each keyframe's visit cloud, hits only."""
         if not self.cfg.visit_scans:
             return None
+        if free_space:
+            from dataclasses import replace
+
+            from slam.mapping.carve2d import carve_scans
+
+            poses, scans = [], []
+            for kf_id, visit in enumerate(self.visit_scans):
+                T = estimates.get(kf_id)
+                if T is None:
+                    continue
+                pose = matrix_to_pose2(T)
+                for rel, pts in visit:
+                    poses.append(compose2d(pose, rel))
+                    scans.append(pts.astype(np.float64))
+            out = OccupancyGrid(replace(self.cfg.region_grid, subcell=False))
+            if poses:
+                carve_scans(out, np.array(poses), scans)
+            return out
         out = OccupancyGrid(self.cfg.region_grid)
         for kf_id, pts in enumerate(self.visit_points):
             T = estimates.get(kf_id)
@@ -470,6 +498,10 @@ class Dpcr2d:
 
         n = min(len(self._recent), self._since_kf + (self.cfg.visit_pad if self.kf_id else 0))
         recent = list(self._recent)[len(self._recent) - n :]
+        inv = inverse2d(anchor)
+        own = list(self._recent)[len(self._recent) - min(self._since_kf, len(self._recent)) :]
+        self.visit_scans.append([(compose2d(inv, q), p.astype(np.float32)) for p, q in own])
+        self._visit_scan_bytes += sum(8 * len(p) + 24 for p, _ in own)
         self._since_kf = 0
         local = visit_cloud(np.array([q for _, q in recent]), [p for p, _ in recent], anchor,
                             self.cfg.region_grid.resolution)  # fmt: skip

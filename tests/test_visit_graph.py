@@ -169,3 +169,10 @@ def test_visit_grid_fuses_the_visits_at_the_optimised_poses(rooms):
     a, b = grid.obstacles(), shifted.obstacles()
     assert len(a) > 500 and abs(len(a) - len(b)) < 0.05 * len(a)
     assert np.median(b[:, 0]) - np.median(a[:, 0]) == pytest.approx(1.0, abs=0.06)
+    # map.pgm is probabilistic: the beams of every visit's scans carve free space (the
+    # rooms' floor); hits only, there is none and the walls are the same cells +- a few %
+    hits = fe.visit_grid({i: T for i, T in enumerate(poses)}, free_space=False)
+    assert (grid.data < 0).sum() > 10 * len(a) and (hits.data < 0).sum() == 0
+    assert abs(len(hits.obstacles()) - len(a)) < 0.15 * len(a)
+    # the visits' own scans: frame 0, then 1-9, 10-19, 20-29, 30-39
+    assert [len(v) for v in fe.visit_scans] == [1, 9, 10, 10, 10]
