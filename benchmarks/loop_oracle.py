@@ -15,6 +15,9 @@ as the real run), so the difference to the real loop closure is the loops alone.
 
     .venv/bin/python benchmarks/loop_oracle.py REC.npz GT.tum --config lego_lpb_loop \
         --out runs/oracle/x [--pairs RUN_DIR | --radius 3 --min-gap 30]
+    # a recording with frontend.odometry_ambiguity, replayed with another ratio / sigma
+    .venv/bin/python benchmarks/loop_oracle.py REC.npz GT.tum --config lego_lpb_loop \\
+        --out runs/oracle/z --real-loops --reloosen 0.8 0.3
     # the run's own loops, odometry loosened along the plain corridor stretches
     .venv/bin/python benchmarks/loop_oracle.py REC.npz GT.tum --config lego_lpb_loop \\
         --out runs/oracle/y --real-loops --loosen-plain 0.3
@@ -131,6 +134,25 @@ def loosen_plain(rec: dict, gt: Path, sigma: float) -> int:
     return n
 
 
+def reloosen(rec: dict, ratio: float, sigma: float) -> int:
+    """In place: the recording's keyframe odometry information as the front end's
+    ``odometry_ambiguity`` would have given it with another ``ratio`` / ``sigma`` (the slide
+    test's ratio and axis of every keyframe are in the recording's extras, the information
+    before loosening in ``info_raw``): exact, not an oracle. Returns the keyframes loosened."""
+    from slam.registration.ambiguity import loosened_information
+
+    extras = json.loads(str(rec["extras"]))
+    info = rec["info_raw"].copy()
+    n = 0
+    for i, e in enumerate(extras):
+        if "ambiguity" in e and e["ambiguity"] >= ratio:
+            axis = np.array([e["ambiguity_axis_x"], e["ambiguity_axis_y"], 0.0])
+            info[i] = loosened_information(info[i], axis, sigma)
+            n += 1
+    rec["info"] = info
+    return n
+
+
 def main(argv: list[str] | None = None) -> int:
     from loop_replay import load_recording, replay
 
@@ -156,9 +178,19 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="keep the config's own loop closure instead of true loops (with --loosen-plain)",
     )
+    ap.add_argument(
+        "--reloosen",
+        type=float,
+        nargs=2,
+        metavar=("RATIO", "SIGMA"),
+        help="a recording made with frontend.odometry_ambiguity: its information as that "
+        "test would give it with this ratio and sigma (m) instead (exact, no oracle)",
+    )
     a = ap.parse_args(argv)
     rec = load_recording(a.recording)
     loosened = loosen_plain(rec, a.gt, a.loosen_plain) if a.loosen_plain else 0
+    if a.reloosen:
+        loosened = reloosen(rec, *a.reloosen)
     if a.real_loops:
         res = replay(rec, a.config, a.overrides, a.out, a.gt)
         res["loosened_keyframes"] = loosened

@@ -236,3 +236,27 @@ def test_tilt_floor_lifts_roll_and_pitch_only():
     corr = out / np.outer(sig, sig)
     assert np.allclose(corr, C / np.outer(sig0, sig0))  # correlations kept
     assert np.allclose(tilt_floor(info, np.radians(0.01)), info)  # already weaker: unchanged
+
+
+def test_free_sigma_zero_rejects_a_loop_with_a_free_axis(corridor_result):
+    """free_sigma <= 0: a loop whose position along its axis is only the start's is not
+    kept (the plain corridor's 4 m offset registers as ~0 from the guess "same place")."""
+    res, T_true = corridor_result
+    assert abs(res.T_target_source[0, 3] - T_true[0, 3]) > 3.0  # what an accepted one claims
+    rng = np.random.default_rng(0)
+    world = _corridor(rng)
+    Ta, Tb = _sensor(0.0, 0.0), _sensor(4.0, 0.3, np.radians(2.0))
+    rej = verify(
+        _view(rng, world, Ta), _view(rng, world, Tb), np.eye(4), VerifyParams(free_sigma=0.0)
+    )
+    assert not rej.accepted and "not unique along" in rej.reason
+    assert len(rej.free_axes) == 1 and np.all(np.isfinite(rej.info))
+    # a room keeps its loop
+    rng = np.random.default_rng(2)
+    world = _room(rng)
+    Ta, Tb = _sensor(5.0, 4.0), _sensor(6.0, 5.0, np.radians(20.0))
+    ok = verify(
+        _view(rng, world, Ta), _view(rng, world, Tb), yaw_matrix(np.radians(20.0)),
+        VerifyParams(free_sigma=0.0),
+    )  # fmt: skip
+    assert ok.accepted

@@ -46,3 +46,24 @@ def test_radius_mode_ties_each_revisit_to_its_nearest_old_keyframe(tmp_path):
         np.testing.assert_allclose(got, rel, atol=1e-9)
         d = np.linalg.norm(poses[:40, :2, 3] - poses[i, :2, 3], axis=1)
         assert j == int(np.argmin(np.where(np.arange(40) <= i - 10, d, np.inf)))
+
+
+def test_reloosen_redoes_the_front_ends_loosening_with_another_ratio_and_sigma():
+    import json
+
+    from loop_oracle import reloosen
+
+    raw = np.stack([np.eye(6) * 1e4] * 4)
+    axis = np.array([0.6, 0.8, 0.0])
+    extras = [
+        {},  # not a keyframe
+        {"ambiguity": 0.5, "ambiguity_axis_x": 0.6, "ambiguity_axis_y": 0.8},
+        {"ambiguity": 0.95, "ambiguity_axis_x": 0.6, "ambiguity_axis_y": 0.8},
+        {"ambiguity": 0.7, "ambiguity_axis_x": 0.6, "ambiguity_axis_y": 0.8},
+    ]
+    rec = {"info": raw.copy(), "info_raw": raw, "extras": json.dumps(extras)}
+    assert reloosen(rec, 0.7, 0.5) == 2
+    u = np.r_[0, 0, 0, axis]
+    sig = [float(np.sqrt(u @ np.linalg.inv(rec["info"][i]) @ u)) for i in range(4)]
+    assert np.allclose(sig, [0.01, 0.01, 0.5, 0.5])
+    assert reloosen(rec, 2.0, 0.5) == 0 and np.array_equal(rec["info"], raw)
