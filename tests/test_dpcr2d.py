@@ -91,7 +91,7 @@ def test_region_edges_cut_the_drift_of_wheel_odometry(rooms_log, tmp_path):
         "--set",
         "frontend.graph_feedback=false",
     ]
-    base = ["run", str(log), "--config", "dpcr2d", "--gt", str(gt), "--quiet", *off]
+    base = ["run", str(log), "--config", "dpcr2d_regions", "--gt", str(gt), "--quiet", *off]
     assert (
         main([*base, "--out", str(tmp_path / "odo"), "--set", "factors.region_edges.enabled=false"])
         == 0
