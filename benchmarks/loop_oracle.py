@@ -188,9 +188,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     a = ap.parse_args(argv)
     rec = load_recording(a.recording)
-    loosened = loosen_plain(rec, a.gt, a.loosen_plain) if a.loosen_plain else 0
-    if a.reloosen:
-        loosened = reloosen(rec, *a.reloosen)
+    loosened = reloosen(rec, *a.reloosen) if a.reloosen else 0
+    if a.loosen_plain:  # on top of --reloosen (99 1: the information before the test)
+        loosened = loosen_plain(rec, a.gt, a.loosen_plain)
     if a.real_loops:
         res = replay(rec, a.config, a.overrides, a.out, a.gt)
         res["loosened_keyframes"] = loosened

@@ -93,7 +93,7 @@ class VerifyParams:
     corridor), and the loop's information along it is set to free_sigma m, or with
     free_sigma <= 0 the loop is rejected (its position along the axis is only the start's,
     the drifted estimate's: on building_loop_return 5 of the 20 such loops were 1.2-8.5 m
-    off along it, every other of 287 loops within 0.2 m) (0 ratio: off;
+    off along it, the 287 others within 0.32 m) (0 ratio: off;
     slam.registration.ambiguity, shared with the front ends' odometry information)."""
 
     voxel: float = 0.25
