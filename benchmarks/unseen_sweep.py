@@ -127,12 +127,7 @@ def _sim_input(spec: dict, tmp: Path) -> tuple[Path, Path]:
     return bag, gt
 
 
-def _fmt(v, digits=3):
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.{digits}f}"
-    return str(v)
+_fmt = rb._fmt  # one cell formatter for both robustness tables
 
 
 def table(rows: list[dict]) -> str:
