@@ -7,6 +7,8 @@ moving scan has. On the street scene with a 64-beam sensor that cost 98 of 200 f
 41 m APE; now only scans 1 cm / 0.2 deg apart enter the map and the normal.
 """
 
+from itertools import islice
+
 import numpy as np
 import pytest
 
@@ -21,13 +23,9 @@ FRAMES = 16
 
 @pytest.fixture(scope="module")
 def departure(urban_short):
-    scans = []
-    for s in open_source(urban_short.bag):
-        if isinstance(s, Scan):
-            scans.append(s)
-            if len(scans) == FRAMES:
-                break
-    stamps, poses = urban_short.read_ground_truth()
+    scans = list(islice((s for s in open_source(urban_short.bag) if isinstance(s, Scan)), FRAMES))
+    assert len(scans) == FRAMES
+    _, poses = urban_short.read_ground_truth()
     return scans, poses[:FRAMES]
 
 
