@@ -70,18 +70,22 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
 
 
 def _stop_code(summary: dict[str, Any]) -> int:
-    stopped = summary.get("stopped_by")
-    if not stopped:
+    stop = summary.get("stop")
+    if stop is None:
         return EXIT_OK
-    _eprint(f"run stopped early: {stopped}; everything computed so far is in {summary['out']}/")
-    return _exit_for_stop(stopped)
+    _eprint(f"run stopped early: {stop}; everything computed so far is in {summary['out']}/")
+    return _exit_for_stop(stop)
 
 
-def _exit_for_stop(stopped: str) -> int:
+def _exit_for_stop(stop: Any) -> int:
     """130 for Ctrl-C, 1 for a back-end failure, 2 for input that could not be read."""
-    if stopped.startswith("interrupted"):
-        return EXIT_INTERRUPTED
-    return EXIT_FAIL if stopped.startswith("back end failed") else EXIT_BAD_INPUT
+    from slam.state import StopReason
+
+    return {
+        StopReason.INTERRUPTED: EXIT_INTERRUPTED,
+        StopReason.BACKEND_FAILED: EXIT_FAIL,
+        StopReason.BAD_INPUT: EXIT_BAD_INPUT,
+    }[stop.reason]
 
 
 def apply_source_args(config: Any, args: argparse.Namespace) -> None:
@@ -148,7 +152,7 @@ def compare(
     from slam.run import run_one
 
     results: dict[str, Any] = {}
-    stops: dict[str, str | None] = {}
+    stops: dict[str, Any] = {}  # config name -> slam.state.Stop or None
     for name in configs:
         config = load_config(name, overrides)
         if source_args is not None:
@@ -156,10 +160,10 @@ def compare(
         summary = run_one(
             bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
         )
-        stops[config.name] = summary["stopped_by"]
+        stops[config.name] = summary["stop"]
         if "eval" in summary:
             results[config.name] = summary["eval"]
-        if summary["stopped_by"]:
+        if summary["stop"] is not None:
             break
     rows = ape_table({k: v.ape_trans for k, v in results.items()})
     tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
@@ -190,10 +194,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
     )
     print(res["tables"]["text"])
     _eprint(f"table, plots and report written to {out}/")
-    for name, stopped in res["stops"].items():
-        if stopped:
-            _eprint(f"{name}: stopped early: {stopped}")
-            return _exit_for_stop(stopped)
+    for name, stop in res["stops"].items():
+        if stop is not None:
+            _eprint(f"{name}: stopped early: {stop}")
+            return _exit_for_stop(stop)
     return EXIT_OK
 
 
