@@ -1,12 +1,12 @@
-"""Running one configuration on one input and writing everything: the library side of
-``slam run`` (also used by ``slam compare``, ``slam demo`` and the sweep workers).
+"""Running configurations on an input and writing everything: the library side of ``slam
+run`` and ``slam compare`` (also used by ``slam demo`` and the sweep workers).
 """
 
 from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,19 @@ def _open_stream(bag: Path, source: Any, system: Any) -> tuple[Any, int]:
     return stream, total
 
 
+def _write_all(
+    system: Any, out: Path, resolved: dict[str, Any], extra: dict[str, Any]
+) -> dict[str, Path]:
+    """Every output of a run (``slam.outputs``), and a 2D run's map_server files."""
+    from slam.io.grid_map import write_region_map
+    from slam.outputs import write_outputs
+
+    written = write_outputs(system, out, resolved_config=resolved, extra_metrics=extra)
+    for path in write_region_map(system, out):
+        written[path.stem + path.suffix] = path
+    return written
+
+
 def _progress_bar(total: int, desc: str, quiet: bool) -> Any:
     """A tqdm bar on stderr counting input messages; logs get a line per 10 s."""
     from tqdm import tqdm
@@ -88,7 +101,6 @@ def run_one(
 
     ``observers``: ``slam.observer.RunObserver`` s that watch the run (a live viewer)."""
     from slam.io.source import open_source
-    from slam.outputs import write_outputs
     from slam.pipeline import resolved_config, run_stream
     from slam.system import SlamSystem
 
@@ -107,21 +119,8 @@ def run_one(
     finally:
         bar.close()
     notes = list(getattr(source, "notes", []))
-    written = write_outputs(
-        system,
-        out,
-        resolved_config=resolved,
-        extra_metrics={
-            "input": str(bag),
-            "topic": getattr(source, "topic", None),
-            "input_notes": notes,
-            "warmup_seconds": warmup_seconds,
-        },
-    )
-    from slam.io.grid_map import write_region_map
-
-    for path in write_region_map(system, out):  # 2D runs: map_server files
-        written[path.stem + path.suffix] = path
+    extra = {"input": str(bag), "topic": getattr(source, "topic", None), "input_notes": notes}
+    written = _write_all(system, out, resolved, {**extra, "warmup_seconds": warmup_seconds})
     summary: dict[str, Any] = {
         "out": out,
         "frames": state.frames,
@@ -137,6 +136,57 @@ def run_one(
     if gt is not None and state.frames > 1:
         summary["eval"] = evaluate_run(out, gt, system, title=label or config.name)
     return summary
+
+
+def compare(
+    bag: Path,
+    gt: Path,
+    configs: list[str],
+    out: Path,
+    *,
+    overrides: list[str] | None = None,
+    topic: str | None = None,
+    quiet: bool = False,
+    configure: Callable[[Any], None] | None = None,
+) -> dict[str, Any]:
+    """Run each config on the same input (``out/<config>``; the first that stops early ends
+    the comparison); the papers' APE table, plots and report in ``out``.
+
+    ``configure(config)``: applied to every loaded config (e.g. the CLI's --start/--strict).
+    Returns results (config -> evaluation), tables (by format), out and stops (config ->
+    ``slam.state.Stop`` or None)."""
+    from slam.config import load_config
+    from slam.eval.plots import plot_all
+    from slam.eval.report import write_report
+    from slam.eval.tables import ape_table, format_table
+
+    results: dict[str, Any] = {}
+    stops: dict[str, Any] = {}
+    for name in configs:
+        config = load_config(name, overrides)
+        if configure is not None:
+            configure(config)
+        summary = run_one(
+            bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
+        )
+        stops[config.name] = summary["stop"]
+        if "eval" in summary:
+            results[config.name] = summary["eval"]
+        if summary["stop"] is not None:
+            break
+    rows = ape_table({k: v.ape_trans for k, v in results.items()})
+    tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
+    (out / "compare.md").write_text(tables["markdown"])
+    (out / "compare.csv").write_text(tables["csv"])
+    images = plot_all(results, out / "plots", prefix="compare_") if results else []
+    write_report(
+        out / "report.html",
+        title=f"SLAM comparison on {bag.name}",
+        tables={"APE (translation, m)": tables["markdown"]},
+        images=images,
+        meta={"input": str(bag), "ground truth": str(gt), "configs": ", ".join(configs)},
+    )
+    return {"results": results, "tables": tables, "out": out, "stops": stops}
 
 
 def evaluate_run(out: Path, gt: Path, system: Any = None, title: str = "run") -> Any:
