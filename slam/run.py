@@ -8,9 +8,14 @@ import json
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from slam.errors import InputError
+
+if TYPE_CHECKING:  # imported lazily at run time: the CLI starts fast
+    from slam.io.stream import ScanStream
+    from slam.observer import RunObserver
+    from slam.system import SlamSystem
 
 
 def disable_loops(config: Any) -> None:
@@ -23,7 +28,7 @@ def disable_loops(config: Any) -> None:
             params["enabled"] = False
 
 
-def _warm_up(system: Any, config: Any) -> float | None:
+def _warm_up(system: SlamSystem, config: Any) -> float | None:
     """Load (on the very first run: compile) the numba kernels of a LiDAR front end before
     the first frame is timed (``slam.warmup``): the first frame otherwise carries them, 10-100x
     slower than the next (warm cache 2.1 s wall / 0.63 s CPU, saving ~1.2 s of the first
@@ -36,7 +41,7 @@ def _warm_up(system: Any, config: Any) -> float | None:
     return round(warm_up(config.frontend), 3)
 
 
-def _open_stream(bag: Path, source: Any, system: Any) -> tuple[Any, int]:
+def _open_stream(bag: Path, source: Any, system: SlamSystem) -> tuple[ScanStream, int]:
     """The scan stream of ``source`` per the config's ``source`` section, and the number
     of messages it will read (0: unknown)."""
     from slam.io.stream import ScanStream
@@ -59,7 +64,7 @@ def _open_stream(bag: Path, source: Any, system: Any) -> tuple[Any, int]:
 
 
 def _write_all(
-    system: Any, out: Path, resolved: dict[str, Any], extra: dict[str, Any]
+    system: SlamSystem, out: Path, resolved: dict[str, Any], extra: dict[str, Any]
 ) -> dict[str, Path]:
     """Every output of a run (``slam.outputs``), and a 2D run's map_server files."""
     from slam.io.grid_map import write_region_map
@@ -95,7 +100,7 @@ def run_one(
     gt: Path | None = None,
     quiet: bool = False,
     label: str | None = None,
-    observers: Sequence[Any] = (),
+    observers: Sequence[RunObserver] = (),
 ) -> dict[str, Any]:
     """Run one configuration on one input, write all outputs; returns a summary dict.
 
