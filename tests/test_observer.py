@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from slam.config import SlamConfig, load_config
 from slam.factor_sources import FactorSource, build_factor_plugins
@@ -118,3 +119,13 @@ def test_without_observers_nothing_is_called_or_timed():
     pipe = Pipeline(SlamConfig(), frontend=ScriptedFrontend(), factor_sources=[])
     st = pipe.run(Scan(stamp=float(i), xyz=np.zeros((1, 3)), index=i) for i in range(5))
     assert st.frames == 5 and "observers" not in st.stage_seconds
+
+
+def test_observers_are_closed_when_the_run_cannot_start(tmp_path, corridor_short):
+    from slam.errors import InputError
+
+    rec = Recorder()
+    config = load_config("floam", ["source.start=100000"])
+    with pytest.raises(InputError, match="has only"):
+        run_one(corridor_short.bag, config, tmp_path, quiet=True, observers=[rec])
+    assert rec.closed == 1 and rec.frames == []
