@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from slam.errors import ConfigError, InputError, SlamError
+from slam.run import compare
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEFAULT_COMPARE = ["floam", "improved_floam", "improved_floam_loop"]
@@ -70,18 +71,22 @@ def _print_run_summary(summary: dict[str, Any]) -> None:
 
 
 def _stop_code(summary: dict[str, Any]) -> int:
-    stopped = summary.get("stopped_by")
-    if not stopped:
+    stop = summary.get("stop")
+    if stop is None:
         return EXIT_OK
-    _eprint(f"run stopped early: {stopped}; everything computed so far is in {summary['out']}/")
-    return _exit_for_stop(stopped)
+    _eprint(f"run stopped early: {stop}; everything computed so far is in {summary['out']}/")
+    return _exit_for_stop(stop)
 
 
-def _exit_for_stop(stopped: str) -> int:
+def _exit_for_stop(stop: Any) -> int:
     """130 for Ctrl-C, 1 for a back-end failure, 2 for input that could not be read."""
-    if stopped.startswith("interrupted"):
-        return EXIT_INTERRUPTED
-    return EXIT_FAIL if stopped.startswith("back end failed") else EXIT_BAD_INPUT
+    from slam.state import StopReason
+
+    return {
+        StopReason.INTERRUPTED: EXIT_INTERRUPTED,
+        StopReason.BACKEND_FAILED: EXIT_FAIL,
+        StopReason.BAD_INPUT: EXIT_BAD_INPUT,
+    }[stop.reason]
 
 
 def apply_source_args(config: Any, args: argparse.Namespace) -> None:
@@ -127,55 +132,6 @@ def _gt(path: str | None) -> Path | None:
 # --------------------------------------------------------------------------- compare
 
 
-def compare(
-    bag: Path,
-    gt: Path,
-    configs: list[str],
-    out: Path,
-    *,
-    overrides: list[str] | None = None,
-    topic: str | None = None,
-    quiet: bool = False,
-    source_args: argparse.Namespace | None = None,
-) -> dict[str, Any]:
-    """Run each config on the same input; the papers' APE table, plots and report.
-
-    ``source_args``: parsed --start/--max-frames/--strict applied to every config."""
-    from slam.config import load_config
-    from slam.eval.plots import plot_all
-    from slam.eval.report import write_report
-    from slam.eval.tables import ape_table, format_table
-    from slam.run import run_one
-
-    results: dict[str, Any] = {}
-    stops: dict[str, str | None] = {}
-    for name in configs:
-        config = load_config(name, overrides)
-        if source_args is not None:
-            apply_source_args(config, source_args)
-        summary = run_one(
-            bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
-        )
-        stops[config.name] = summary["stopped_by"]
-        if "eval" in summary:
-            results[config.name] = summary["eval"]
-        if summary["stopped_by"]:
-            break
-    rows = ape_table({k: v.ape_trans for k, v in results.items()})
-    tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
-    (out / "compare.md").write_text(tables["markdown"])
-    (out / "compare.csv").write_text(tables["csv"])
-    images = plot_all(results, out / "plots", prefix="compare_") if results else []
-    write_report(
-        out / "report.html",
-        title=f"SLAM comparison on {bag.name}",
-        tables={"APE (translation, m)": tables["markdown"]},
-        images=images,
-        meta={"input": str(bag), "ground truth": str(gt), "configs": ", ".join(configs)},
-    )
-    return {"results": results, "tables": tables, "out": out, "stops": stops}
-
-
 def cmd_compare(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else default_out_dir("compare")
     res = compare(
@@ -186,14 +142,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
         overrides=args.set,
         topic=args.topic,
         quiet=args.quiet,
-        source_args=args,
+        configure=lambda config: apply_source_args(config, args),
     )
     print(res["tables"]["text"])
     _eprint(f"table, plots and report written to {out}/")
-    for name, stopped in res["stops"].items():
-        if stopped:
-            _eprint(f"{name}: stopped early: {stopped}")
-            return _exit_for_stop(stopped)
+    for name, stop in res["stops"].items():
+        if stop is not None:
+            _eprint(f"{name}: stopped early: {stop}")
+            return _exit_for_stop(stop)
     return EXIT_OK
 
 

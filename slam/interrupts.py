@@ -43,3 +43,16 @@ class StopRequest:
             signal.signal(signal.SIGINT, self._previous)
             self._previous = None
         return False
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """True when ``exc`` was caused by a KeyboardInterrupt: a C extension (numba's dispatcher,
+    its cache loader) that sees Ctrl-C returns an error CPython reports as a SystemError
+    whose cause is the KeyboardInterrupt."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

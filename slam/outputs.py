@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import json
 import logging
-import resource
-import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from slam.io.trajectory import write_kitti, write_tum
-from slam.pipeline import Pipeline
+from slam.state import peak_memory_mb
+from slam.system import SlamSystem
 
 log = logging.getLogger(__name__)
 
@@ -31,26 +29,20 @@ APE_JSON = "ape.json"
 TRACKING_COUNTERS = ("rejected", "tracking_lost", "recovered", "reinitialised")
 
 
-def peak_memory_mb() -> float:
-    """Peak resident memory of this process in MiB."""
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
-
-
-def build_map(pipeline: Pipeline, voxel: float | None = None) -> np.ndarray:
+def build_map(system: SlamSystem, voxel: float | None = None) -> np.ndarray:
     """The map (M, 3) m in the world frame: voxel centroids (cell ``voxel`` m, default
     ``output.map_voxel``; <= 0 keeps every point) of the keyframe clouds placed by their
     optimised poses, streamed keyframe by keyframe into a :class:`VoxelCentroidMap` (memory
     bounded by the occupied voxels, not by the sum of the clouds)."""
-    return map_accumulator(pipeline, voxel).centroids()
+    return map_accumulator(system, voxel).centroids()
 
 
-def map_accumulator(pipeline: Pipeline, voxel: float | None = None) -> Any:
+def map_accumulator(system: SlamSystem, voxel: float | None = None) -> Any:
     """The :class:`slam.io.maps.VoxelCentroidMap` of the run (see :func:`build_map`)."""
     from slam.io.maps import VoxelCentroidMap
 
-    st = pipeline.state
-    acc = VoxelCentroidMap(pipeline.config.output.map_voxel if voxel is None else voxel)
+    st = system.state
+    acc = VoxelCentroidMap(system.config.output.map_voxel if voxel is None else voxel)
     for kf in st.keyframes:
         if kf.cloud is not None and len(kf.cloud):
             acc.add_transformed(kf.cloud, st.estimates.get(kf.id, kf.pose_odom))
@@ -69,13 +61,13 @@ def _window_mean_ms(seconds: Any, first: bool, n: int = 100) -> float | None:
 
 
 def stage_window_ms(
-    pipeline: Pipeline, first: bool, n: int = 100, cpu: bool = False
+    system: SlamSystem, first: bool, n: int = 100, cpu: bool = False
 ) -> dict[str, float]:
     """Mean ms per frame of every stage over the first or last ``n`` frames (a stage that did
     not run on a frame counts 0 there), plus ``other``: the rest of the frame's step (the
-    pipeline's own bookkeeping). Compared start vs end, it shows which stage grows.
+    system's own bookkeeping). Compared start vs end, it shows which stage grows.
     ``cpu``: CPU ms of this process instead of wall ms."""
-    st = pipeline.state
+    st = system.state
     out: dict[str, float] = {}
     frames = np.asarray(st.frame_cpu_seconds if cpu else st.frame_seconds, dtype=float)
     if len(frames) == 0:
@@ -91,10 +83,10 @@ def stage_window_ms(
     return out
 
 
-def plugin_stats(pipeline: Pipeline) -> dict[str, Any]:
+def plugin_stats(system: SlamSystem) -> dict[str, Any]:
     """``stats()`` of every factor plugin that has one (a failing one is left out)."""
     out: dict[str, Any] = {}
-    for source in pipeline.factor_sources:
+    for source in system.factor_sources:
         stats = getattr(source.plugin, "stats", None)
         if callable(stats):
             try:
@@ -107,10 +99,10 @@ def plugin_stats(pipeline: Pipeline) -> dict[str, Any]:
     return out
 
 
-def memory_per_km(pipeline: Pipeline) -> float | None:
+def memory_per_km(system: SlamSystem) -> float | None:
     """Growth of the peak memory (MiB) per km travelled since the reference frame (100):
     what a longer drive adds; None before 100 m beyond it."""
-    st = pipeline.state
+    st = system.state
     if st.memory_reference is None:
         return None
     peak0, path0 = st.memory_reference
@@ -118,13 +110,13 @@ def memory_per_km(pipeline: Pipeline) -> float | None:
     return round((peak_memory_mb() - peak0) / km, 1) if km >= 0.1 else None
 
 
-def keyframe_cloud_mb(pipeline: Pipeline) -> float:
+def keyframe_cloud_mb(system: SlamSystem) -> float:
     """MiB held by the stored keyframe clouds."""
-    return sum(kf.cloud.nbytes for kf in pipeline.state.keyframes) / 2**20
+    return sum(kf.cloud.nbytes for kf in system.state.keyframes) / 2**20
 
 
-def write_trajectories(pipeline: Pipeline, out: Path) -> list[Path]:
-    st = pipeline.state
+def write_trajectories(system: SlamSystem, out: Path) -> list[Path]:
+    st = system.state
     if st.frames == 0:
         return []
     stamps = np.asarray(st.stamps)
@@ -135,9 +127,9 @@ def write_trajectories(pipeline: Pipeline, out: Path) -> list[Path]:
     return [out / TRAJECTORY_TUM, out / TRAJECTORY_KITTI, out / ODOMETRY_TUM]
 
 
-def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def metrics(system: SlamSystem, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Counts, timings and memory of a run (metrics.json)."""
-    st = pipeline.state
+    st = system.state
     fe = st.stage_seconds.get("frontend", 0.0)
     return {
         "frames": st.frames,
@@ -156,45 +148,45 @@ def metrics(pipeline: Pipeline, extra: dict[str, Any] | None = None) -> dict[str
         # the slowest single call per stage (ms): front end per frame, each factor plugin
         # and the back end per keyframe
         "stage_ms_max": {k: round(1e3 * v, 3) for k, v in st.stage_max_seconds.items()},
-        # per-frame wall time of the whole pipeline step, start vs end of the run (ms)
+        # per-frame wall time of the whole system step, start vs end of the run (ms)
         "frame_ms_first100": _window_mean_ms(st.frame_seconds, first=True),
         "frame_ms_last100": _window_mean_ms(st.frame_seconds, first=False),
         "frame_ms_max": round(1e3 * max(st.frame_seconds), 3) if st.frame_seconds else None,
         # CPU ms of this process per frame (start vs end): independent of the machine's load
         "frame_cpu_ms_first100": _window_mean_ms(st.frame_cpu_seconds, first=True),
         "frame_cpu_ms_last100": _window_mean_ms(st.frame_cpu_seconds, first=False),
-        # the same split by stage (ms per frame; "other": the pipeline's own bookkeeping)
-        "stage_ms_first100": stage_window_ms(pipeline, first=True),
-        "stage_ms_last100": stage_window_ms(pipeline, first=False),
-        "stage_cpu_ms_first100": stage_window_ms(pipeline, first=True, cpu=True),
-        "stage_cpu_ms_last100": stage_window_ms(pipeline, first=False, cpu=True),
+        # the same split by stage (ms per frame; "other": the system's own bookkeeping)
+        "stage_ms_first100": stage_window_ms(system, first=True),
+        "stage_ms_last100": stage_window_ms(system, first=False),
+        "stage_cpu_ms_first100": stage_window_ms(system, first=True, cpu=True),
+        "stage_cpu_ms_last100": stage_window_ms(system, first=False, cpu=True),
         # back-end update per keyframe (ms): mean over the first / last 100 keyframes, max
         "backend_ms_first100": _window_mean_ms(st.backend_seconds, first=True),
         "backend_ms_last100": _window_mean_ms(st.backend_seconds, first=False),
         "backend_ms_max": (round(1e3 * max(st.backend_seconds), 3) if st.backend_seconds else None),
         "path_length_m": round(st.path_length, 2),
-        "keyframe_cloud_mb": round(keyframe_cloud_mb(pipeline), 2),
+        "keyframe_cloud_mb": round(keyframe_cloud_mb(system), 2),
         "wall_seconds": round(st.wall_seconds, 3),
         "frames_per_second": round(st.frames / st.wall_seconds, 2) if st.wall_seconds else None,
         "frontend_frames_per_second": round(st.frames / fe, 2) if fe else None,
         "peak_memory_mb": round(peak_memory_mb(), 1),
-        "memory_mb_per_km": memory_per_km(pipeline),
+        "memory_mb_per_km": memory_per_km(system),
         "frontend_means": {k: round(v, 4) for k, v in sorted(st.diagnostic_means().items())},
         "stopped_by": st.stopped_by,
         "sensor": st.sensor,
         # each factor plugin's own counts and timings (``stats()``, e.g. the loop plugin's
         # detect/verify ms), by the name it was configured under
-        "factor_stats": plugin_stats(pipeline),
+        "factor_stats": plugin_stats(system),
         # the back end's own (e.g. the region graph's optimisations and their ms)
         "backend_stats": (
-            pipeline.backend.stats() if callable(getattr(pipeline.backend, "stats", None)) else {}
+            system.backend.stats() if callable(getattr(system.backend, "stats", None)) else {}
         ),
         **(extra or {}),
     }
 
 
 def write_outputs(
-    pipeline: Pipeline,
+    system: SlamSystem,
     out: Path,
     *,
     resolved_config: dict[str, Any],
@@ -207,15 +199,14 @@ def write_outputs(
     written: dict[str, Path] = {}
     (out / CONFIG_YAML).write_text(yaml.safe_dump(resolved_config, sort_keys=False))
     written["config"] = out / CONFIG_YAML
-    for path in write_trajectories(pipeline, out):
+    for path in write_trajectories(system, out):
         written[path.name] = path
-    st = pipeline.state
-    if pipeline.config.output.write_map and st.keyframes:
+    st = system.state
+    if system.config.output.write_map and st.keyframes:
         try:
-            t0 = time.perf_counter()
-            name = MAP_PCD if pipeline.config.output.map_format == "pcd" else "map.ply"
-            n_map = map_accumulator(pipeline).write(out / name)
-            st.stage_seconds["map"] += time.perf_counter() - t0
+            name = MAP_PCD if system.config.output.map_format == "pcd" else "map.ply"
+            with st.timer("map"):
+                n_map = map_accumulator(system).write(out / name)
             written["map"] = out / name
             extra_metrics = {**(extra_metrics or {}), "map_points": n_map}
         except Exception as exc:  # noqa: BLE001 - a failed map must not lose the trajectories
@@ -226,14 +217,14 @@ def write_outputs(
             from slam.pose_graph import values_from_poses, write_g2o
 
             optimised = {k: pose3(T) for k, T in st.estimates.items()}
-            write_g2o(out / GRAPH_G2O, pipeline.backend.graph(), values_from_poses(optimised))
+            write_g2o(out / GRAPH_G2O, system.backend.graph(), values_from_poses(optimised))
             written["graph"] = out / GRAPH_G2O
         except Exception as exc:  # noqa: BLE001
             log.warning("pose graph not written: %s", exc)
-    for source in pipeline.factor_sources:
+    for source in system.factor_sources:
         if hasattr(source.plugin, "write_csv"):
             source.plugin.write_csv(out / LOOPS_CSV)
             written["loops"] = out / LOOPS_CSV
-    (out / METRICS_JSON).write_text(json.dumps(metrics(pipeline, extra_metrics), indent=2))
+    (out / METRICS_JSON).write_text(json.dumps(metrics(system, extra_metrics), indent=2))
     written["metrics"] = out / METRICS_JSON
     return written

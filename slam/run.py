@@ -1,15 +1,21 @@
-"""Running one configuration on one input and writing everything: the library side of
-``slam run`` (also used by ``slam compare``, ``slam demo`` and the sweep workers).
+"""Running configurations on an input and writing everything: the library side of ``slam
+run`` and ``slam compare`` (also used by ``slam demo`` and the sweep workers).
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from slam.errors import InputError
+
+if TYPE_CHECKING:  # imported lazily at run time: the CLI starts fast
+    from slam.io.stream import ScanStream
+    from slam.observer import RunObserver
+    from slam.system import SlamSystem
 
 
 def disable_loops(config: Any) -> None:
@@ -22,7 +28,7 @@ def disable_loops(config: Any) -> None:
             params["enabled"] = False
 
 
-def _warm_up(pipeline: Any, config: Any) -> float | None:
+def _warm_up(system: SlamSystem, config: Any) -> float | None:
     """Load (on the very first run: compile) the numba kernels of a LiDAR front end before
     the first frame is timed (``slam.warmup``): the first frame otherwise carries them, 10-100x
     slower than the next (warm cache 2.1 s wall / 0.63 s CPU, saving ~1.2 s of the first
@@ -30,9 +36,59 @@ def _warm_up(pipeline: Any, config: Any) -> float | None:
     from frontends.common import ScanToMapFrontend
     from slam.warmup import warm_up
 
-    if not isinstance(pipeline.frontend, ScanToMapFrontend):
+    if not isinstance(system.frontend, ScanToMapFrontend):
         return None
     return round(warm_up(config.frontend), 3)
+
+
+def _open_stream(bag: Path, source: Any, system: SlamSystem) -> tuple[ScanStream, int]:
+    """The scan stream of ``source`` per the config's ``source`` section, and the number
+    of messages it will read (0: unknown)."""
+    from slam.io.stream import ScanStream
+
+    src = system.config.source
+    total = max(len(source) - src.start, 0) if len(source) else 0
+    if src.start and len(source) and src.start >= len(source):
+        raise InputError(f"--start {src.start}: {bag} has only {len(source)} messages")
+    if src.max_frames is not None:
+        total = min(total, src.max_frames) if total else src.max_frames
+    stream = ScanStream(
+        source,
+        src,
+        start=src.start,
+        max_frames=src.max_frames,
+        strict=src.strict,
+        stats=system.state.input,
+    )
+    return stream, total
+
+
+def _write_all(
+    system: SlamSystem, out: Path, resolved: dict[str, Any], extra: dict[str, Any]
+) -> dict[str, Path]:
+    """Every output of a run (``slam.outputs``), and a 2D run's map_server files."""
+    from slam.io.grid_map import write_region_map
+    from slam.outputs import write_outputs
+
+    written = write_outputs(system, out, resolved_config=resolved, extra_metrics=extra)
+    for path in write_region_map(system, out):
+        written[path.stem + path.suffix] = path
+    return written
+
+
+def _progress_bar(total: int, desc: str, quiet: bool) -> Any:
+    """A tqdm bar on stderr counting input messages; logs get a line per 10 s."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total or None,
+        unit="frame",
+        desc=desc,
+        disable=quiet,
+        dynamic_ncols=True,
+        file=sys.stderr,
+        mininterval=0.1 if sys.stderr.isatty() else 10.0,
+    )
 
 
 def run_one(
@@ -44,80 +100,101 @@ def run_one(
     gt: Path | None = None,
     quiet: bool = False,
     label: str | None = None,
+    observers: Sequence[RunObserver] = (),
 ) -> dict[str, Any]:
-    """Run one configuration on one input, write all outputs; returns a summary dict."""
-    from tqdm import tqdm
+    """Run one configuration on one input, write all outputs; returns a summary dict.
 
+    ``observers``: ``slam.observer.RunObserver`` s that watch the run (a live viewer)."""
     from slam.io.source import open_source
-    from slam.outputs import write_outputs
-    from slam.pipeline import Pipeline, resolved_config
+    from slam.pipeline import resolved_config, run_stream
+    from slam.system import SlamSystem
 
     resolved = resolved_config(config)
     source = open_source(bag, topic=topic or config.source.topic)
-    pipeline = Pipeline(config)
-    src = config.source
-    total = max(len(source) - src.start, 0) if len(source) else 0
-    if src.start and len(source) and src.start >= len(source):
-        raise InputError(f"--start {src.start}: {bag} has only {len(source)} messages")
-    if src.max_frames is not None:
-        total = min(total, src.max_frames) if total else src.max_frames
-    warmup_seconds = _warm_up(pipeline, config)
-    bar = tqdm(
-        total=total or None,
-        unit="frame",
-        desc=label or config.name,
-        disable=quiet,
-        dynamic_ncols=True,
-        file=sys.stderr,
-        mininterval=0.1 if sys.stderr.isatty() else 10.0,  # logs get a line per 10 s
-    )
-    last = [0]
-
-    def on_frame(n: int) -> None:
-        bar.update(n - last[0])
-        last[0] = n
-
+    system = SlamSystem(config, observers=observers)
     try:
-        state = pipeline.run(
-            source,
-            on_frame=on_frame,
-            max_frames=src.max_frames,
-            start=src.start,
-            strict=src.strict,
-        )
+        stream, total = _open_stream(bag, source, system)
+        warmup_seconds = _warm_up(system, config)
+    except BaseException:
+        system.observers.close()  # the run never started: finish() would have closed them
+        raise
+    bar = _progress_bar(total, label or config.name, quiet)
+    try:
+        state = run_stream(system, stream, on_message=lambda n: bar.update(n - bar.n))
     finally:
         bar.close()
-    written = write_outputs(
-        pipeline,
-        out,
-        resolved_config=resolved,
-        extra_metrics={
-            "input": str(bag),
-            "topic": getattr(source, "topic", None),
-            "input_notes": list(getattr(source, "notes", [])),
-            "warmup_seconds": warmup_seconds,
-        },
-    )
-    from slam.io.grid_map import write_region_map
-
-    for path in write_region_map(pipeline, out):  # 2D runs: map_server files
-        written[path.stem + path.suffix] = path
+    notes = list(getattr(source, "notes", []))
+    extra = {"input": str(bag), "topic": getattr(source, "topic", None), "input_notes": notes}
+    written = _write_all(system, out, resolved, {**extra, "warmup_seconds": warmup_seconds})
     summary: dict[str, Any] = {
         "out": out,
         "frames": state.frames,
         "keyframes": len(state.keyframes),
-        "stopped_by": state.stopped_by,
+        "stop": state.stop,  # slam.state.Stop or None
+        "stopped_by": state.stopped_by,  # the same in words
         "skipped_messages": dict(state.skipped_messages),
-        "input_notes": list(getattr(source, "notes", [])),
+        "input_notes": notes,
         "written": written,
-        "pipeline": pipeline,
+        "system": system,
+        "pipeline": system,  # the name scripts used before
     }
     if gt is not None and state.frames > 1:
-        summary["eval"] = evaluate_run(out, gt, pipeline, title=label or config.name)
+        summary["eval"] = evaluate_run(out, gt, system, title=label or config.name)
     return summary
 
 
-def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") -> Any:
+def compare(
+    bag: Path,
+    gt: Path,
+    configs: list[str],
+    out: Path,
+    *,
+    overrides: list[str] | None = None,
+    topic: str | None = None,
+    quiet: bool = False,
+    configure: Callable[[Any], None] | None = None,
+) -> dict[str, Any]:
+    """Run each config on the same input (``out/<config>``; the first that stops early ends
+    the comparison); the papers' APE table, plots and report in ``out``.
+
+    ``configure(config)``: applied to every loaded config (e.g. the CLI's --start/--strict).
+    Returns results (config -> evaluation), tables (by format), out and stops (config ->
+    ``slam.state.Stop`` or None)."""
+    from slam.config import load_config
+    from slam.eval.plots import plot_all
+    from slam.eval.report import write_report
+    from slam.eval.tables import ape_table, format_table
+
+    results: dict[str, Any] = {}
+    stops: dict[str, Any] = {}
+    for name in configs:
+        config = load_config(name, overrides)
+        if configure is not None:
+            configure(config)
+        summary = run_one(
+            bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
+        )
+        stops[config.name] = summary["stop"]
+        if "eval" in summary:
+            results[config.name] = summary["eval"]
+        if summary["stop"] is not None:
+            break
+    rows = ape_table({k: v.ape_trans for k, v in results.items()})
+    tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
+    (out / "compare.md").write_text(tables["markdown"])
+    (out / "compare.csv").write_text(tables["csv"])
+    images = plot_all(results, out / "plots", prefix="compare_") if results else []
+    write_report(
+        out / "report.html",
+        title=f"SLAM comparison on {bag.name}",
+        tables={"APE (translation, m)": tables["markdown"]},
+        images=images,
+        meta={"input": str(bag), "ground truth": str(gt), "configs": ", ".join(configs)},
+    )
+    return {"results": results, "tables": tables, "out": out, "stops": stops}
+
+
+def evaluate_run(out: Path, gt: Path, system: Any = None, title: str = "run") -> Any:
     """APE/RPE against ground truth, plots and the HTML report of one run."""
     from slam.eval.metrics import evaluate
     from slam.eval.plots import plot_all
@@ -126,7 +203,7 @@ def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") 
 
     result = evaluate(out / "trajectory.tum", gt)
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
-    loops = _loop_positions(pipeline) if pipeline is not None else None
+    loops = _loop_positions(system) if system is not None else None
     images = plot_all(result, out / "plots", loop_positions=loops)
     table = format_table(ape_table({title: result.ape_trans}), "markdown")
     metrics = (
@@ -145,11 +222,11 @@ def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") 
     return result
 
 
-def _loop_positions(pipeline: Any) -> list | None:
+def _loop_positions(system: Any) -> list | None:
     """Pairs of optimised keyframe positions for each accepted loop, for the plots."""
-    st = pipeline.state
+    st = system.state
     pairs = []
-    for source in pipeline.factor_sources:
+    for source in system.factor_sources:
         for ev in getattr(source.plugin, "events", []):
             if ev.accepted and ev.source in st.estimates and ev.target in st.estimates:
                 pairs.append(

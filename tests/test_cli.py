@@ -217,11 +217,15 @@ def test_compare_table_and_no_loop_reproduces_odometry(corridor_short, tmp_path,
 
 def test_stop_codes_say_why_a_run_ended_early():
     from slam.cli import _stop_code
+    from slam.state import Stop, StopReason
 
-    assert _stop_code({"stopped_by": None, "out": "o"}) == 0
-    assert _stop_code({"stopped_by": "interrupted (Ctrl-C)", "out": "o"}) == 130
-    assert _stop_code({"stopped_by": "bad input: truncated bag", "out": "o"}) == 2
-    assert _stop_code({"stopped_by": "back end failed: indeterminate", "out": "o"}) == 1
+    assert _stop_code({"stop": None, "out": "o"}) == 0
+    assert _stop_code({"stop": Stop(StopReason.INTERRUPTED), "out": "o"}) == 130
+    assert _stop_code({"stop": Stop(StopReason.BAD_INPUT, "truncated bag"), "out": "o"}) == 2
+    assert _stop_code({"stop": Stop(StopReason.BACKEND_FAILED, "indeterminate"), "out": "o"}) == 1
+    # the words stay what metrics.json and the summary have always said
+    assert str(Stop(StopReason.INTERRUPTED)) == "interrupted (Ctrl-C)"
+    assert str(Stop(StopReason.BAD_INPUT, "truncated bag")) == "bad input: truncated bag"
 
 
 def test_stamps_flag_reaches_the_source_config(tmp_path, corridor_short):

@@ -16,6 +16,7 @@ from slam.frontend import KeyframeConfig, is_new_keyframe
 from slam.io.trajectory import read_tum
 from slam.outputs import write_outputs
 from slam.pipeline import Pipeline, build_factor_plugins, resolved_config
+from slam.state import StopReason
 from slam.types import Odometry, Scan
 
 
@@ -119,6 +120,8 @@ def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
     held = 0 if reason == "bad input" else pipe.config.source.reorder_window
     n = 25 - held
     assert held in (0, 4) and st.frames == n and st.stopped_by.startswith(reason)
+    assert st.stop.reason is {"interrupted": StopReason.INTERRUPTED,
+                              "bad input": StopReason.BAD_INPUT}[reason]  # fmt: skip
     written = write_outputs(pipe, tmp_path, resolved_config=resolved_config(pipe.config))
     stamps, traj = read_tum(written["trajectory.tum"])
     assert len(stamps) == n
@@ -317,6 +320,7 @@ def test_a_back_end_failure_stops_the_run_and_keeps_every_frame(tmp_path):
     pipe = Pipeline(config, frontend=ScriptedFrontend(poses), backend=FailingIsam2(at=12))
     st = pipe.run(scans(60))
     assert st.stopped_by.startswith("back end failed: Indeterminate")
+    assert st.stop.reason is StopReason.BACKEND_FAILED and st.stop.detail.startswith("Indet")
     assert len(st.keyframes) == 13 and st.frames < 60
     written = write_outputs(pipe, tmp_path, resolved_config=resolved_config(pipe.config))
     stamps, traj = read_tum(written["trajectory.tum"])

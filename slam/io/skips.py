@@ -6,7 +6,7 @@ from __future__ import annotations
 from slam.errors import InputError
 from slam.types import Scan, SkippedMessage
 
-# Skip reasons (SkippedMessage.reason): short categories the pipeline counts.
+# Skip reasons (SkippedMessage.reason): short categories the scan stream counts.
 CORRUPT_MESSAGE = "corrupt message"
 CORRUPT_FILE = "corrupt file"
 EMPTY_MESSAGE = "empty message"

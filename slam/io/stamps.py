@@ -1,4 +1,4 @@
-"""Which clock stamps a scan, and the small reorder buffer in front of the pipeline.
+"""Which clock stamps a scan, and the small reorder buffer of the scan stream (slam.io.stream).
 
 A bag has two clocks per message: the header stamp the driver wrote (when the sweep was
 taken) and the record time (when the recorder got it; the order AnyReader plays messages
@@ -34,7 +34,7 @@ MIN_IN_ORDER = 0.75  # share of the probed messages that must come out in order
 
 def kept_in_order(stamps: Iterable[float], window: int) -> int:
     """How many of ``stamps`` (in arrival order) a reorder buffer holding ``window`` of them
-    lets through in strictly increasing order (the pipeline drops the others)."""
+    lets through in strictly increasing order (the scan stream drops the others)."""
     heap: list[float] = []
     kept, last = 0, -np.inf
 
@@ -171,7 +171,7 @@ class Reorder:
         t, seq, scan = heapq.heappop(self._heap)
         yield scan
         if not t > self._last:
-            return  # the pipeline drops it: it overtakes nothing
+            return  # the scan stream drops it: it overtakes nothing
         self._last = t
         ahead = []
         for entry in self._heap:
