@@ -170,8 +170,11 @@ class Pipeline:
         frontend: Any = None,
         backend: Any = None,
         factor_sources: list[FactorSource] | None = None,
+        observers: Iterable[Any] = (),
     ):
         self.config = config
+        # watchers of the run (``slam.viz``: on_frame, on_keyframe, on_loop, on_optimised)
+        self.observers = list(observers)
         self.frontend = frontend or plugins.instantiate(
             "slam.frontends", config.frontend, "frontend"
         )
@@ -296,6 +299,8 @@ class Pipeline:
         st.frame_seconds.append(time.perf_counter() - t0)
         st.frame_cpu_seconds.append(time.process_time() - c0)
         self._close_frame_stages()
+        for obs in self.observers:
+            obs.on_frame(st.frames - 1, scan, odom)
         if st.frames == MEMORY_REFERENCE_FRAME:
             from slam.outputs import peak_memory_mb
 
@@ -342,6 +347,8 @@ class Pipeline:
             initial_T = self._estimate(kf_id - 1) @ kf.relative
         t_guess, c_guess = time.perf_counter() - t_guess, time.process_time() - c_guess
         st.keyframes.append(kf)
+        for obs in self.observers:
+            obs.on_keyframe(kf_id, kf.frame_index, kf.pose_odom, kf.cloud)
         self._pending = (kf_id, initial_T)
         factors: list[Any] = []
         loop_closed = False
@@ -353,6 +360,7 @@ class Pipeline:
             if new and source.is_loop:
                 loop_closed = True
                 st.loops_closed += len(new)
+                self._observe_loops(new)
             factors.extend(new)
         t0, c0 = time.perf_counter(), time.process_time()
         self._backend_update(factors, {kf_id: pose3(initial_T)}, loop_closed)
@@ -361,6 +369,8 @@ class Pipeline:
         st.backend_seconds.append(dt)
         self._estimate_cache = {}
         self._pending = None
+        if loop_closed:
+            self._observe_optimised()
         self._graph_feedback()
 
     def _graph_feedback(self) -> None:
@@ -646,6 +656,7 @@ class Pipeline:
             if new and source.is_loop:
                 loop_closed = True
                 st.loops_closed += len(new)
+                self._observe_loops(new)
             factors.extend(new)
         if factors:
             t0 = time.perf_counter()
@@ -677,6 +688,24 @@ class Pipeline:
         for kf in st.keyframes:  # a keyframe the back end never saw (stopped mid-update)
             if kf.id not in st.estimates:
                 st.estimates[kf.id] = kf.pose_odom
+        for obs in self.observers:
+            obs.on_optimised(st.estimates)
+
+    def _observe_loops(self, factors: list[Any]) -> None:
+        """Tell the observers about the keyframe pairs (a, b) of new loop factors."""
+        import gtsam
+
+        for obs in self.observers:
+            for f in factors:
+                a, b = (gtsam.Symbol(k).index() for k in f.keys()[:2])
+                obs.on_loop(int(a), int(b))
+
+    def _observe_optimised(self) -> None:
+        """Tell the observers the back end's poses of every keyframe after a loop update."""
+        if self.observers:
+            poses = {k: v.matrix() for k, v in self.backend.estimate().items()}
+            for obs in self.observers:
+                obs.on_optimised(poses)
 
 
 def resolved_config(config: SlamConfig) -> dict[str, Any]:

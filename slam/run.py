@@ -44,8 +44,12 @@ def run_one(
     gt: Path | None = None,
     quiet: bool = False,
     label: str | None = None,
+    observers: Any = (),
 ) -> dict[str, Any]:
-    """Run one configuration on one input, write all outputs; returns a summary dict."""
+    """Run one configuration on one input, write all outputs; returns a summary dict.
+
+    observers: watchers of the run (``slam.viz.rerun_view.RerunObserver``), told of every
+    frame, keyframe, loop and optimisation."""
     from tqdm import tqdm
 
     from slam.io.source import open_source
@@ -54,7 +58,7 @@ def run_one(
 
     resolved = resolved_config(config)
     source = open_source(bag, topic=topic or config.source.topic)
-    pipeline = Pipeline(config)
+    pipeline = Pipeline(config, observers=observers)
     src = config.source
     total = max(len(source) - src.start, 0) if len(source) else 0
     if src.start and len(source) and src.start >= len(source):
@@ -128,6 +132,9 @@ def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") 
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
     loops = _loop_positions(pipeline) if pipeline is not None else None
     images = plot_all(result, out / "plots", loop_positions=loops)
+    from slam.viz.birdseye import map_images
+
+    maps = map_images(out, pipeline)
     table = format_table(ape_table({title: result.ape_trans}), "markdown")
     metrics = (
         json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
@@ -137,6 +144,7 @@ def evaluate_run(out: Path, gt: Path, pipeline: Any = None, title: str = "run") 
         title=f"SLAM run: {title}",
         tables={"APE (translation, m)": table},
         images=images,
+        figures={"Map": maps},
         meta={
             "ground truth": str(gt),
             **{k: v for k, v in metrics.items() if not isinstance(v, dict)},

@@ -278,6 +278,57 @@ def ape_overlay_figure(results: Mapping[str, EvalResult]):
     return fig
 
 
+ODOM_COLOR, LOOP_EDGE_COLOR = "tab:orange", "tab:red"
+PAIR_SIZE = (16.0, 7.0)  # two panels, 1600 x 700 px
+
+
+def odometry_vs_loop_figure(
+    odom: EvalResult, closed: EvalResult, loop_positions: Sequence[np.ndarray] | None = None
+):
+    """What loop closure did: left, the odometry-only and the loop-closed estimates (each
+    SE(3)-aligned to the ground truth on its own) over the dashed ground truth, with the
+    accepted loop edges (red, between the loop-closed keyframe positions); right, the
+    translational APE of both along the distance travelled (m)."""
+    import matplotlib.pyplot as plt
+
+    plot, mode = evo_plot(), _mode("xy")
+    fig = plt.figure(figsize=PAIR_SIZE, dpi=DPI, layout="constrained")
+    ax = fig.add_subplot(1, 2, 1)
+    gt = _traj(closed.stamps, closed.gt_poses)
+    plot.traj(ax, mode, gt, label=GT_LABEL, **GT_STYLE)
+    for res, color, name in (
+        (odom, ODOM_COLOR, "odometry only"),
+        (closed, EST_COLOR, "loop closed"),
+    ):
+        label = f"{name} (APE RMSE {res.ape_trans['rmse']:.2f} m)"
+        plot.traj(ax, mode, _traj(res.stamps, res.est_poses), "-", color, label)
+    segments = _loop_segments(closed, None, loop_positions)
+    if len(segments):
+        from matplotlib.collections import LineCollection
+
+        edges = LineCollection(segments[:, :, :2], colors=LOOP_EDGE_COLOR, linewidths=1.5)
+        edges.set_label(f"loop closures ({len(segments)})")
+        ax.add_collection(edges)
+    ax.legend(frameon=True, loc="best")
+    ax.set_title("Odometry only vs loop closed, over the ground truth (xy)")
+    _fit_box(ax, "xy")
+    ax2 = fig.add_subplot(1, 2, 2)
+    for res, color, name in (
+        (odom, ODOM_COLOR, "odometry only"),
+        (closed, EST_COLOR, "loop closed"),
+    ):
+        step = np.linalg.norm(np.diff(res.gt_poses[:, :3, 3], axis=0), axis=1)
+        dist = np.concatenate([[0.0], np.cumsum(step)])
+        ax2.plot(dist, res.ape_errors, color=color, label=name)
+    ax2.set_xlabel("distance travelled (m)")
+    ax2.set_ylabel("APE (translation, m)")
+    ax2.set_ylim(bottom=0.0)
+    ax2.grid(True, alpha=0.4)
+    ax2.legend(frameon=True)
+    ax2.set_title("Absolute pose error along the drive")
+    return fig
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "run"
 
