@@ -285,7 +285,8 @@ def pgm_png(pgm: Path, png: Path) -> Path:
     from slam.io.grid_map import read_pgm
 
     png.parent.mkdir(parents=True, exist_ok=True)
-    plt.imsave(png, read_pgm(pgm), cmap="gray", vmin=0, vmax=255, format="png")
+    grey = read_pgm(pgm)
+    plt.imsave(png, np.repeat(grey[:, :, None], 3, axis=2), format="png")  # RGB: no colour map
     return png
 
 
