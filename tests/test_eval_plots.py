@@ -192,7 +192,7 @@ def test_odometry_vs_loop_figure_shows_both_estimates_and_the_loops(close):
     loop_pos = [closed.est_full[[5, 140], :3, 3], closed.est_full[[20, 120], :3, 3]]
     fig = plots.odometry_vs_loop_figure(odom, closed, loop_pos)
     close(fig)
-    traj_ax, ape_ax = fig.axes
+    traj_ax, zoom_ax, ape_ax = fig.axes
     lines = lines_by_label(traj_ax)
     odom_key = next(k for k in lines if k.startswith("odometry only"))
     loop_key = next(k for k in lines if k.startswith("loop closed"))
@@ -209,4 +209,8 @@ def test_odometry_vs_loop_figure_shows_both_estimates_and_the_loops(close):
     np.testing.assert_allclose(ape["odometry only"][:, 1], odom.ape_errors)
     np.testing.assert_allclose(ape["loop closed"][:, 1], closed.ape_errors)
     assert ape["loop closed"][-1, 0] == pytest.approx(closed.path_length, rel=0.05)
-    assert fig.get_size_inches() * fig.dpi == pytest.approx((1600, 700))
+    assert len(lines_by_label(zoom_ax)) == 4  # the same lines, zoomed on the worst odometry
+    worst = odom.gt_poses[np.argmax(odom.ape_errors), :2, 3]
+    assert np.mean(zoom_ax.get_xlim()) == pytest.approx(worst[0])
+    assert np.mean(zoom_ax.get_ylim()) == pytest.approx(worst[1])
+    assert fig.get_size_inches() * fig.dpi == pytest.approx((1900, 650))

@@ -30,6 +30,8 @@ MAP_PGM_PNG = "map_pgm.png"
 PIXELS = 900  # raster cells along the longer side of the view
 MARGIN = 25.0  # m of map shown around the trajectory (a LiDAR sees ~50-100 m)
 MIN_CELL = 0.15  # m: the finest raster cell (sparse maps of small places stay legible)
+ZOOM_HALF = 20.0  # m: half the side of the zoom on a revisit
+ZOOM_CELL = 0.1  # m
 CMAP = "viridis"
 TRAJ_COLOR = "tab:red"
 LOOP_COLOR = "#ff00ff"
@@ -174,27 +176,28 @@ def birdseye_figure(points: np.ndarray, trajectory_xy: np.ndarray, title: str = 
 
 
 def before_after_figure(
-    before: HeightRaster,
-    after: HeightRaster,
+    rows: Sequence[tuple[HeightRaster, HeightRaster, str]],
     odom_xy: np.ndarray,
     opt_xy: np.ndarray,
     loops_before: np.ndarray,
     loops_after: np.ndarray,
 ):
     """The keyframe clouds placed by the front end's poses (left) and by the optimised ones
-    (right), same grid and colours: what loop closure did to the map."""
+    (right), one row per (before, after, what) raster pair (the whole map, a zoom on a
+    revisit), same colours throughout: what loop closure did to the map."""
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(16.0, 7.5), dpi=DPI, layout="constrained")
-    axes = fig.subplots(1, 2, sharex=True, sharey=True)
-    limits = height_limits([before.image(), after.image()])
-    draw_map(axes[0], before, limits, odom_xy, loops_before)
-    image = draw_map(axes[1], after, limits, opt_xy, loops_after)
-    axes[0].set_title("Map before loop closure (odometry poses)")
-    axes[1].set_title("Map after loop closure (optimised poses)")
-    for ax in axes:
+    fig = plt.figure(figsize=(16.0, 7.0 * len(rows)), dpi=DPI, layout="constrained")
+    axes = np.asarray(fig.subplots(len(rows), 2)).reshape(len(rows), 2)
+    limits = height_limits([im.image() for before, after, _ in rows for im in (before, after)])
+    for (before, after, what), (left, right) in zip(rows, axes, strict=True):
+        draw_map(left, before, limits, odom_xy, loops_before)
+        image = draw_map(right, after, limits, opt_xy, loops_after)
+        left.set_title(f"{what} before loop closure (odometry poses)")
+        right.set_title(f"{what} after loop closure (optimised poses)")
+    for ax in axes[0]:
         ax.legend(loc="upper right", frameon=True)
-    fig.colorbar(image, ax=list(axes), shrink=0.8, label="height of the highest point (m)")
+    fig.colorbar(image, ax=list(axes.ravel()), shrink=0.6, label="height of the highest point (m)")
     return fig
 
 
@@ -250,13 +253,16 @@ def _edges(poses: dict[int, np.ndarray], pairs: Sequence[tuple[int, int]]) -> np
     return np.asarray(segs, dtype=float).reshape(-1, 2, 2)
 
 
-def keyframe_maps(pipeline: Any) -> tuple[HeightRaster, HeightRaster, np.ndarray, np.ndarray]:
+def keyframe_maps(
+    pipeline: Any, grid: Grid | None = None
+) -> tuple[HeightRaster, HeightRaster, np.ndarray, np.ndarray]:
     """The keyframe clouds rasterised at their odometry poses and at their optimised poses
-    (one shared grid), and the odometry / optimised positions of every frame (N, 2)."""
+    on ``grid`` (default: around both trajectories), and the odometry / optimised positions
+    of every frame (N, 2)."""
     st = pipeline.state
     odom_xy = np.stack(st.odom_poses)[:, :2, 3]
     opt_xy = st.trajectory()[:, :2, 3]
-    grid = Grid.around(np.vstack([odom_xy, opt_xy]))
+    grid = grid or Grid.around(np.vstack([odom_xy, opt_xy]))
     before, after = HeightRaster(grid), HeightRaster(grid)
     for kf in st.keyframes:
         cloud = np.asarray(kf.cloud, dtype=float)
@@ -265,16 +271,30 @@ def keyframe_maps(pipeline: Any) -> tuple[HeightRaster, HeightRaster, np.ndarray
     return before, after, odom_xy, opt_xy
 
 
+def zoom_grid(pipeline: Any, pairs: Sequence[tuple[int, int]], half: float = ZOOM_HALF) -> Grid:
+    """A fine grid (``half`` m around) on the loop keyframe that loop closure moved most: a
+    revisit, where the odometry map shows the two passes apart."""
+    st = pipeline.state
+    kfs = {kf.id: kf for kf in st.keyframes}
+    ids = [k for pair in pairs for k in pair if k in kfs and k in st.estimates]
+    moved = [np.linalg.norm(kfs[k].pose_odom[:2, 3] - st.estimates[k][:2, 3]) for k in ids]
+    centre = st.estimates[ids[int(np.argmax(moved))]][:2, 3]
+    return Grid.around(centre[None, :], margin=half, pixels=int(2 * half / ZOOM_CELL))
+
+
 def loop_map_figure(pipeline: Any):
-    """:func:`before_after_figure` of a finished pipeline, or None without accepted loops."""
+    """:func:`before_after_figure` of a finished pipeline (the whole map and a zoom on the
+    revisit loop closure moved most), or None without accepted loops."""
     pairs = loop_pairs(pipeline)
     st = pipeline.state
     if not pairs or not st.keyframes:
         return None
     before, after, odom_xy, opt_xy = keyframe_maps(pipeline)
+    zoom_before, zoom_after, _, _ = keyframe_maps(pipeline, zoom_grid(pipeline, pairs))
     odom_kf = {kf.id: kf.pose_odom for kf in st.keyframes}
+    rows = [(before, after, "Map"), (zoom_before, zoom_after, f"Zoom ({2 * ZOOM_HALF:.0f} m)")]
     return before_after_figure(
-        before, after, odom_xy, opt_xy, _edges(odom_kf, pairs), _edges(st.estimates, pairs)
+        rows, odom_xy, opt_xy, _edges(odom_kf, pairs), _edges(st.estimates, pairs)
     )
 
 
