@@ -59,7 +59,7 @@ def run_demo(
     the figures and ``out/report.html`` (first figure: both trajectories with the loops)."""
     from slam.config import load_config
     from slam.eval.metrics import evaluate
-    from slam.eval.plots import ape_overlay_figure, odometry_vs_loop_figure, save_png
+    from slam.eval.plots import odometry_vs_loop_figure, save_png
     from slam.eval.report import write_report
     from slam.run import run_one
     from slam.viz.birdseye import map_images
@@ -83,7 +83,6 @@ def run_demo(
         odometry_vs_loop_figure(odometry, closed, loop_positions(pipeline)),
         plots / "odometry_vs_loop_closed.png",
     )
-    ape = save_png(ape_overlay_figure({ODOM_ROW: odometry, LOOP_ROW: closed}), plots / "ape.png")
     maps = map_images(run_dir, pipeline, plots=plots)
     report = write_report(
         out / "report.html",
@@ -91,7 +90,6 @@ def run_demo(
         lead=[lead],
         tables={"APE (translation, m), SE(3)-aligned": tables["markdown"]},
         figures={"Map": maps},
-        images=[ape],
         meta={
             "input": str(bag),
             "ground truth": str(gt),
