@@ -92,9 +92,12 @@ def decimate(points: np.ndarray, limit: int) -> np.ndarray:
 class VizConfig:
     """How much of a run is logged (points per scan / keyframe, strips, thresholds)."""
 
-    scan_points: int = 3000
-    keyframe_points: int = 1000
-    local_keyframes: int = 10
+    scan_points: int = 2000
+    scan_every: int = 2  # frames: the scan is shown at 5 Hz of a 10 Hz sensor
+    keyframe_points: int = 800
+    local_keyframes: int = 8  # the local map: the last keyframe clouds, ...
+    local_points: int = 4000  # ... decimated together to this many points, ...
+    local_every: int = 3  # ... re-logged (with the keyframe positions) every 3rd keyframe
     chunk: int = 200  # frames per strip of the odometry trajectory
     moved: float = 0.005  # m (or rad): an optimised keyframe is re-logged past this change
 
@@ -121,8 +124,9 @@ class RerunObserver:
         rr, rec, T = self.rr, self.rec, np.asarray(odom.pose, dtype=float)
         self._set_time(index, float(scan.stamp))
         rec.log("world/sensor", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-        pts = decimate(scan.xyz, self.config.scan_points)
-        rec.log("world/sensor/scan", rr.Points3D(pts, colors=SCAN_COLOR, radii=0.05))
+        if index % self.config.scan_every == 0:
+            pts = decimate(scan.xyz, self.config.scan_points)
+            rec.log("world/sensor/scan", rr.Points3D(pts, colors=SCAN_COLOR, radii=0.05))
         chunk = index // self.config.chunk
         if index % self.config.chunk == 0 and self._odom:
             self._odom = self._odom[-1:]  # strips join: the new one starts at the last point
@@ -143,9 +147,13 @@ class RerunObserver:
         self._kf_ids.append(kf_id)
         self._kf_xyz = np.vstack([self._kf_xyz, pose[:3, 3]])
         self._local.append((kf_id, pts))
-        local = [c @ self._kf_pose[k][:3, :3].T + self._kf_pose[k][:3, 3] for k, c in self._local]
-        rec.log("world/local_map", rr.Points3D(np.vstack(local), colors=LOCAL_COLOR, radii=0.05))
-        rec.log("world/keyframes", rr.Points3D(self._kf_xyz, colors=KF_COLOR, radii=0.15))
+        if (len(self._kf_ids) - 1) % self.config.local_every == 0:
+            local = [
+                c @ self._kf_pose[k][:3, :3].T + self._kf_pose[k][:3, 3] for k, c in self._local
+            ]
+            local_map = decimate(np.vstack(local), self.config.local_points)
+            rec.log("world/local_map", rr.Points3D(local_map, colors=LOCAL_COLOR, radii=0.05))
+            rec.log("world/keyframes", rr.Points3D(self._kf_xyz, colors=KF_COLOR, radii=0.15))
 
     def on_loop(self, kf_a: int, kf_b: int) -> None:
         self._loops.append((int(kf_a), int(kf_b)))
