@@ -4,20 +4,24 @@
 ``on_keyframe``, ``on_loop``, ``on_optimised``, ``close``) and logs, on the ``frame``
 timeline (and ``time``, seconds from the first scan):
 
-- ``world/sensor``: the front end's pose of the frame (Transform3D), and under it
-  ``world/sensor/scan``: the scan in the sensor frame, decimated to ``scan_points``;
+- ``world/sensor``: the front end's pose of every frame (Transform3D), and under it
+  ``world/sensor/scan``: the scan in the sensor frame, decimated to ``scan_points``, every
+  ``scan_every`` frames;
 - ``world/odometry/NNNN``: the front end's trajectory, in strips of ``chunk`` frames (a
   frame re-logs only its own strip);
 - ``world/map/kfNNNNN`` (Transform3D) and ``.../points``: each keyframe's cloud, decimated,
   logged once; an optimisation re-logs only the transforms of keyframes it moved;
-- ``world/local_map``: the last ``local_keyframes`` keyframe clouds in the world frame;
-- ``world/keyframes``, ``world/optimised``: keyframe positions and the optimised keyframe
-  path; ``world/loops``: the loop edges between keyframe positions.
+- ``world/local_map``: the last ``local_keyframes`` keyframe clouds in the world frame,
+  decimated to ``local_points``, and ``world/keyframes`` (keyframe positions), both every
+  ``local_every`` keyframes;
+- ``world/optimised``: the optimised keyframe path; ``world/loops``: the loop edges between
+  keyframe positions (after each loop and optimisation).
 
-Cost: a few log calls per frame on decimated arrays, O(1) in the length of the run except
-the keyframe positions (one (K, 3) array per keyframe); rerun serialises and writes in its
-own thread. ``benchmarks/bench_viz.py`` measures it. rerun-sdk is the optional extra
-``viz``, imported only when a view is asked for.
+Cost: a few log calls per frame on decimated arrays (about 30 kB a frame), O(1) in the
+length of the run except the keyframe positions (one (K, 3) array every third keyframe);
+rerun serialises and writes in its own thread, whose CPU counts too.
+``benchmarks/bench_viz.py`` measures both. rerun-sdk is the optional extra ``viz``,
+imported only when a view is asked for.
 """
 
 from __future__ import annotations
