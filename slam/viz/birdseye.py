@@ -262,7 +262,13 @@ def keyframe_maps(
     st = pipeline.state
     odom_xy = np.stack(st.odom_poses)[:, :2, 3]
     opt_xy = st.trajectory()[:, :2, 3]
-    grid = grid or Grid.around(np.vstack([odom_xy, opt_xy]))
+    if grid is None:  # framed by the trajectories and a sample of both maps
+        sample = [
+            np.asarray(kf.cloud[::50], dtype=float) @ T[:3, :3].T + T[:3, 3]
+            for kf in st.keyframes
+            for T in (kf.pose_odom, st.estimates.get(kf.id, kf.pose_odom))
+        ]
+        grid = Grid.around(np.vstack([odom_xy, opt_xy]), points=np.vstack(sample))
     before, after = HeightRaster(grid), HeightRaster(grid)
     for kf in st.keyframes:
         cloud = np.asarray(kf.cloud, dtype=float)
@@ -290,9 +296,11 @@ def loop_map_figure(pipeline: Any):
     if not pairs or not st.keyframes:
         return None
     before, after, odom_xy, opt_xy = keyframe_maps(pipeline)
-    zoom_before, zoom_after, _, _ = keyframe_maps(pipeline, zoom_grid(pipeline, pairs))
+    g = before.grid  # the zoom: a fifth of the map's side (small rooms), at most 40 m
+    half = min(ZOOM_HALF, max(3.0, 0.1 * g.cell * max(g.nx, g.ny)))
+    zoom_before, zoom_after, _, _ = keyframe_maps(pipeline, zoom_grid(pipeline, pairs, half))
     odom_kf = {kf.id: kf.pose_odom for kf in st.keyframes}
-    rows = [(before, after, "Map"), (zoom_before, zoom_after, f"Zoom ({2 * ZOOM_HALF:.0f} m)")]
+    rows = [(before, after, "Map"), (zoom_before, zoom_after, f"Zoom ({2 * half:.0f} m)")]
     return before_after_figure(
         rows, odom_xy, opt_xy, _edges(odom_kf, pairs), _edges(st.estimates, pairs)
     )
