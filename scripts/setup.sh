@@ -23,8 +23,16 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)
 if [ ! -f "$stamp" ]; then
+  echo "installing pyslam-graph and its dependencies into .venv (first time: 1-3 min)..." >&2
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-  .venv/bin/python -m pip install -q -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
-  .venv/bin/python -c "import gtsam, open3d, rosbags, evo, small_gicp" 
+  # pip's and setuptools' own chatter (editable-install warnings of the build backend) goes
+  # to a log that is shown only when the install fails
+  log=.venv/install.log
+  if ! .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev,viz]" >"$log" 2>&1; then
+    cat "$log" >&2
+    echo "error: installing the package failed (log above, kept in $log)" >&2
+    exit 1
+  fi
+  .venv/bin/python -c "import gtsam, open3d, rosbags, evo, small_gicp, rerun"
   touch "$stamp"
 fi

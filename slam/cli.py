@@ -20,6 +20,9 @@ from slam.run import compare
 
 EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEFAULT_COMPARE = ["floam", "improved_floam", "improved_floam_loop"]
+# 1200 frames: 860 m of the city drive, the last 150 m back along the first street the
+# other way (odometry 0.64 m APE RMSE, loop closed 0.15 m: see slam.viz.demo)
+DEMO_SCENE, DEMO_FRAMES = "urban", 1200
 
 log = logging.getLogger("slam")
 
@@ -113,11 +116,49 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.no_loop:
         disable_loops(config)
     out = Path(args.out) if args.out else default_out_dir(config.name)
-    summary = run_one(
-        Path(args.bag), config, out, topic=args.topic, gt=_gt(args.gt), quiet=args.quiet
-    )
+    observers = []
+    if args.viz is not None:  # "" (bare --viz): a viewer on this display; else an .rrd file
+        from slam.viz.rerun_view import viz_observer
+
+        observers.append(viz_observer(args.viz))
+    try:
+        summary = run_one(
+            Path(args.bag),
+            config,
+            out,
+            topic=args.topic,
+            gt=_gt(args.gt),
+            quiet=args.quiet,
+            observers=observers,
+        )
+    finally:
+        for obs in observers:
+            obs.close()
     _print_run_summary(summary)
+    if args.viz:
+        _eprint(f"live view recorded to {args.viz} (open it with: rerun {args.viz})")
     return _stop_code(summary)
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """A finished run's map, trajectories and loops in the Rerun viewer or an .rrd file."""
+    from slam.viz.replay import replay_run
+    from slam.viz.rerun_view import open_stream
+
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"run folder not found: {run_dir}")
+    rec = open_stream(args.viz)
+    try:
+        counts = replay_run(run_dir, rec)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    _eprint(
+        f"{run_dir}: {counts['map_points']} map points, {counts['frames']} poses, "
+        f"{counts['loops']} loops" + (f" recorded to {args.viz}" if args.viz else "")
+    )
+    return EXIT_OK
 
 
 def _gt(path: str | None) -> Path | None:
@@ -156,9 +197,27 @@ def cmd_compare(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- other commands
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
+def _sim_progress(scene: str, quiet: bool = False) -> tuple[Any, Any]:
+    """A progress bar of a simulation and its ``progress(done, total)`` callback."""
     from tqdm import tqdm
 
+    bar = tqdm(
+        unit="scan",
+        desc=f"simulate {scene}",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        disable=quiet,
+        mininterval=0.1 if sys.stderr.isatty() else 10.0,
+    )
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    return bar, progress
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
     from slam.sim.floorplan2d import PLANS, simulate2d, write_sequence
     from slam.sim.simulate import simulate
 
@@ -168,17 +227,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         _eprint(f"wrote {len(seq.stamps)} 2D laser scans to {log} and ground truth to {gt}")
         return EXIT_OK
 
-    bar = tqdm(
-        unit="scan",
-        desc=f"simulate {args.scene}",
-        file=sys.stderr,
-        dynamic_ncols=True,
-        mininterval=0.1 if sys.stderr.isatty() else 10.0,
-    )
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
+    bar, progress = _sim_progress(args.scene)
 
     try:
         res = simulate(
@@ -252,16 +301,28 @@ def _print_info(info: dict[str, Any]) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Simulate a drive with revisits (cached), run it with loop closure, print odometry only
+    vs loop closed; with --configs, the papers' table of those recipes instead."""
     from slam.sim.cache import ensure_sequence
+    from slam.viz.demo import run_demo
 
     out = Path(args.out) if args.out else default_out_dir("demo")
     _eprint(f"simulating the '{args.scene}' sequence (cached after the first time)...")
-    seq = ensure_sequence(args.scene, frames=args.frames)
+    bar, progress = _sim_progress(args.scene, args.quiet)
+    try:
+        seq = ensure_sequence(args.scene, frames=args.frames, progress=progress)
+    finally:
+        bar.close()
     _eprint(f"sequence: {seq.bag} ({seq.frames} scans), ground truth {seq.ground_truth}")
-    res = compare(seq.bag, seq.ground_truth, args.configs or DEFAULT_COMPARE, out, quiet=args.quiet)
-    print(res["tables"]["text"])
-    _eprint(f"demo outputs (trajectories, maps, plots, report.html) in {out}/")
-    return EXIT_OK
+    if args.configs:
+        res = compare(seq.bag, seq.ground_truth, args.configs, out, quiet=args.quiet)
+        print(res["tables"]["text"])
+        _eprint(f"demo outputs (trajectories, maps, plots, report.html) in {out}/")
+        return EXIT_OK
+    demo = run_demo(seq.bag, seq.ground_truth, out, config=args.config, quiet=args.quiet)
+    print(demo.tables["text"])
+    _eprint(f"report (trajectories with the loops, the map before / after): {demo.report}")
+    return _stop_code(demo.summary)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -354,8 +415,21 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--config", default=None, help="config name in configs/ or a YAML path")
     q.add_argument("--no-loop", action="store_true", help="switch loop closure off")
     q.add_argument("--gt", help="ground truth (TUM) to evaluate against")
+    q.add_argument(
+        "--viz",
+        nargs="?",
+        const="",
+        metavar="FILE.rrd",
+        help="live view in the Rerun viewer (pip install 'pyslam-graph[viz]'); "
+        "with FILE.rrd: record the same stream to a file (no display needed)",
+    )
     common_run(q)
     q.set_defaults(func=cmd_run)
+
+    q = sub.add_parser("view", help="a finished run's map, trajectories and loops in Rerun")
+    q.add_argument("run_dir", help="the --out folder of a run")
+    q.add_argument("--viz", metavar="FILE.rrd", help="record to FILE.rrd instead of a viewer")
+    q.set_defaults(func=cmd_view)
 
     q = sub.add_parser("compare", help="run several configs on one bag; the papers' APE table")
     q.add_argument("bag")
@@ -400,10 +474,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_info)
 
-    q = sub.add_parser("demo", help="simulate a sequence, run and compare the default configs")
-    q.add_argument("--scene", default="corridor")
-    q.add_argument("--frames", type=int, help="truncate the simulated sequence")
-    q.add_argument("--configs", nargs="+")
+    q = sub.add_parser(
+        "demo", help="simulate a city drive with revisits; odometry only vs loop closed"
+    )
+    q.add_argument("--scene", default=DEMO_SCENE)
+    q.add_argument("--frames", type=int, default=DEMO_FRAMES, help="truncate the sequence")
+    q.add_argument("--config", default="improved_floam_loop", help="a recipe with loop closure")
+    q.add_argument("--configs", nargs="+", help="instead: the papers' table of these recipes")
     q.add_argument("--out")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=cmd_demo)

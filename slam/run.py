@@ -205,6 +205,9 @@ def evaluate_run(out: Path, gt: Path, system: Any = None, title: str = "run") ->
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
     loops = _loop_positions(system) if system is not None else None
     images = plot_all(result, out / "plots", loop_positions=loops)
+    from slam.viz.birdseye import map_images
+
+    maps = map_images(out, system)
     table = format_table(ape_table({title: result.ape_trans}), "markdown")
     metrics = (
         json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
@@ -214,6 +217,7 @@ def evaluate_run(out: Path, gt: Path, system: Any = None, title: str = "run") ->
         title=f"SLAM run: {title}",
         tables={"APE (translation, m)": table},
         images=images,
+        figures={"Map": maps},
         meta={
             "ground truth": str(gt),
             **{k: v for k, v in metrics.items() if not isinstance(v, dict)},

@@ -185,3 +185,39 @@ def test_fresh_interpreter_with_a_gui_backend_in_evo_settings_draws_with_agg(tmp
     assert len(list((tmp_path / "out").glob("*.png"))) == 7
     assert (evo_dir / "assets_version").read_text() != "0.0.1"  # evo did run its update
     assert json.loads((evo_dir / "settings.json").read_text())["plot_backend"] == "TkAgg"
+
+
+def test_odometry_vs_loop_figure_shows_both_estimates_and_the_loops(close):
+    odom, closed = synthetic(0.4, seed=3), synthetic(0.1, seed=4)
+    loop_pos = [closed.est_full[[5, 140], :3, 3], closed.est_full[[20, 120], :3, 3]]
+    fig = plots.odometry_vs_loop_figure(odom, closed, loop_pos)
+    close(fig)
+    traj_ax, zoom_ax, ape_ax = fig.axes
+    lines = lines_by_label(traj_ax)
+    odom_key = next(k for k in lines if k.startswith("odometry only"))
+    loop_key = next(k for k in lines if k.startswith("loop closed"))
+    assert f"{odom.ape_trans['rmse']:.2f} m" in odom_key
+    np.testing.assert_allclose(lines[odom_key], odom.est_poses[:, :2, 3])
+    np.testing.assert_allclose(lines[loop_key], closed.est_poses[:, :2, 3])
+    np.testing.assert_allclose(lines["ground truth"], closed.gt_poses[:, :2, 3])
+    (edges,) = [c for c in traj_ax.collections if c.get_label().startswith("loop closures")]
+    assert edges.get_label() == "loop closures (2)"
+    A = closed.alignment  # loop positions are in the run's frame: aligned like the estimate
+    aligned = loop_pos[0] @ A[:3, :3].T + A[:3, 3]
+    np.testing.assert_allclose(edges.get_segments()[0], aligned[:, :2], atol=1e-9)
+    ape = lines_by_label(ape_ax)
+    np.testing.assert_allclose(ape["odometry only"][:, 1], odom.ape_errors)
+    np.testing.assert_allclose(ape["loop closed"][:, 1], closed.ape_errors)
+    assert ape["loop closed"][-1, 0] == pytest.approx(closed.path_length, rel=0.05)
+    assert len(lines_by_label(zoom_ax)) == 4  # the same lines, zoomed on the worst odometry
+    centre = np.array([np.mean(zoom_ax.get_xlim()), np.mean(zoom_ax.get_ylim())])
+    mids = [(seg[0, :2] + seg[1, :2]) / 2 for seg in edges.get_segments()]
+    assert min(np.linalg.norm(centre - m) for m in mids) < 1.0  # on a revisit: both passes
+    assert "revisit" in zoom_ax.get_title()
+    assert fig.get_size_inches() * fig.dpi == pytest.approx((1900, 650))
+    no_loops = plots.odometry_vs_loop_figure(odom, closed)  # without loops: the worst pose
+    close(no_loops)
+    zoom = no_loops.axes[1]
+    worst = odom.gt_poses[np.argmax(odom.ape_errors), :2, 3]
+    assert np.mean(zoom.get_xlim()) == pytest.approx(worst[0])
+    assert np.mean(zoom.get_ylim()) == pytest.approx(worst[1])

@@ -218,3 +218,26 @@ def test_markdown_conversion_falls_back_to_pre():
     assert markdown_table_to_html("just <text>") == "<pre>just &lt;text&gt;</pre>"
     out = markdown_table_to_html("| a | b |\n|---|---:|\n| x | 1.5 |\n")
     assert out.count("<th>") == 2 and '<td class="num">1.5</td>' in out
+
+
+def test_report_lead_figure_first_then_tables_sections_and_meta(single_plots, tmp_path):
+    lead, mapping, plot = single_plots[0], single_plots[1], single_plots[2]
+    path = write_report(
+        tmp_path / "report.html",
+        title="t",
+        lead=[lead],
+        tables={"APE": "| a |\n|---|\n| 1 |\n"},
+        figures={"Map": [mapping], "Empty": []},
+        images=[plot],
+        meta={"bag": "x.bag"},
+    )
+    text = path.read_text(encoding="utf-8")
+    parser = Collector()
+    parser.feed(text)
+    decoded = [base64.b64decode(src.split(",", 1)[1]) for src in parser.imgs]
+    assert decoded == [p.read_bytes() for p in (lead, mapping, plot)]
+    order = [text.index(s) for s in ("<img", "<h2>APE", "<h2>Map", "<h2>Run", "<h2>Plots")]
+    assert order == sorted(order)
+    assert "<h2>Empty" not in text  # a section without pictures is left out
+    with pytest.raises(InputError, match="not found"):
+        write_report(tmp_path / "r.html", title="t", figures={"Map": [tmp_path / "no.png"]})

@@ -99,12 +99,18 @@ def write_report(
     tables: Mapping[str, str] | None = None,
     images: Sequence[str | Path] = (),
     meta: Mapping[str, Any] | None = None,
+    figures: Mapping[str, Sequence[str | Path]] | None = None,
+    lead: Sequence[str | Path] = (),
 ) -> Path:
-    """Write one offline HTML file: title, ``meta`` key/values, ``tables`` (name -> markdown
-    pipe table or HTML fragment), then ``images`` (PNG files, base64-embedded)."""
+    """Write one offline HTML file: title, ``lead`` figures (the point of the page, above
+    everything else), ``meta`` key/values, ``tables`` (name -> markdown pipe table or HTML
+    fragment), ``figures`` (section name -> PNGs, e.g. the map), then ``images`` (PNG
+    files under "Plots"); every PNG is base64-embedded."""
     path = Path(path)
     images = [Path(p) for p in images]
-    for img in images:
+    lead = [Path(p) for p in lead]
+    sections = {name: [Path(p) for p in pngs] for name, pngs in (figures or {}).items()}
+    for img in [*lead, *images, *(p for pngs in sections.values() for p in pngs)]:
         if not img.is_file():
             raise InputError(f"report image not found: {img}")
     stamp = _dt.datetime.now().isoformat(timespec="seconds")
@@ -115,10 +121,15 @@ def write_report(
         f"<h1>{html.escape(title)}</h1>",
         f'<p class="generated">Generated {stamp}</p>',
     ]
-    if meta:
-        parts += ["<h2>Run</h2>", _meta_html(meta)]
+    parts += [_image_html(img) for img in lead]
     for name, content in (tables or {}).items():
         parts += [f"<h2>{html.escape(name)}</h2>", _table_html(content)]
+    for name, pngs in sections.items():
+        if pngs:
+            parts.append(f"<h2>{html.escape(name)}</h2>")
+            parts += [_image_html(img) for img in pngs]
+    if meta:
+        parts += ["<h2>Run</h2>", _meta_html(meta)]
     if images:
         parts.append("<h2>Plots</h2>")
         parts += [_image_html(img) for img in images]

@@ -1,0 +1,73 @@
+"""`slam demo`: odometry only vs loop closed from one run, its table and its report (first
+figure: both trajectories over the ground truth), on a short corridor piece."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import numpy as np
+import pytest
+
+from slam.cli import DEMO_FRAMES, DEMO_SCENE, build_parser, main
+from slam.eval.metrics import evaluate
+
+pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py
+
+
+def test_demo_defaults_to_the_city_drive_with_its_revisit():
+    args = build_parser().parse_args(["demo"])
+    assert (args.scene, args.frames, args.config) == (
+        DEMO_SCENE,
+        DEMO_FRAMES,
+        "improved_floam_loop",
+    )
+    assert DEMO_SCENE == "urban" and DEMO_FRAMES >= 1200  # reaches the street driven back
+
+
+@pytest.fixture(scope="module")
+def demo(corridor_short, tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    code = main(["demo", "--scene", "corridor", "--frames", "60", "--out", str(out), "--quiet"])
+    return code, out, corridor_short
+
+
+def test_demo_table_rows_are_the_two_trajectories_of_one_run(demo, capsys):
+    code, out, seq = demo
+    assert code == 0
+    lines = (out / "demo.md").read_text().splitlines()
+    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]] for ln in lines[2:]}
+    assert list(rows) == [
+        "odometry only",
+        "loop closed",
+        "% improvement loop closed vs odometry only",
+    ]
+    run = out / "improved_floam_loop"
+    rmse = {
+        name: evaluate(run / f, seq.ground_truth).ape_trans["rmse"]
+        for name, f in (("odometry only", "odometry.tum"), ("loop closed", "trajectory.tum"))
+    }
+    for name, value in rmse.items():
+        assert float(rows[name][4]) == pytest.approx(value, abs=1e-4)  # RMSE column
+    change = (rmse["odometry only"] - rmse["loop closed"]) / rmse["odometry only"] * 100
+    assert float(rows["% improvement loop closed vs odometry only"][4]) == pytest.approx(
+        change, abs=1e-3
+    )
+    assert rmse["loop closed"] < 0.05  # a 60-frame corridor piece: centimetres
+
+
+def test_demo_report_opens_with_the_trajectories_and_shows_the_map(demo):
+    _, out, _ = demo
+    text = (out / "report.html").read_text()
+    srcs = re.findall(r'src="data:image/png;base64,([^"]+)"', text)
+    first = base64.b64decode(srcs[0])
+    assert first == (out / "plots" / "odometry_vs_loop_closed.png").read_bytes()
+    assert base64.b64decode(srcs[1]) == (out / "plots" / "map_birdseye.png").read_bytes()
+    assert text.index("<img") < text.index("<h2>APE") < text.index("<h2>Map")
+    metrics = json.loads((out / "improved_floam_loop" / "metrics.json").read_text())
+    assert metrics["frames"] == 60
+    # the run's own folder has its own report, with its map
+    run_report = (out / "improved_floam_loop" / "report.html").read_text()
+    assert "<h2>Map</h2>" in run_report
+    assert np.isfinite(metrics["frames_per_second"])
