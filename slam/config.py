@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
@@ -29,6 +30,10 @@ DEFAULT_CONFIG = "improved_floam"
 
 
 LAYOUT_TIME = ("auto", "always", "never")
+
+
+class ConfigDeprecationWarning(FutureWarning):
+    """A recipe key that still works but has moved; the message names its new place."""
 
 
 @dataclass
@@ -174,9 +179,40 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def upgrade_keys(cls: type, data: dict[str, Any], where: str) -> dict[str, Any]:
+    """``data`` with the keys ``cls.deprecated_keys`` maps (old key -> new dotted path) moved
+    to their new place, and one ConfigDeprecationWarning naming each new key. An old key
+    that is also a field of ``cls`` counts as old when its value is not a mapping."""
+    moved: dict[str, str] = getattr(cls, "deprecated_keys", None) or {}
+    fields = {f.name for f in dataclasses.fields(cls)}
+    old = [k for k in data if k in moved and not (k in fields and isinstance(data[k], dict))]
+    if not old:
+        return data
+    out = {k: copy.deepcopy(v) for k, v in data.items() if k not in old}
+    for k in old:
+        *sections, leaf = moved[k].split(".")
+        node = out
+        for section in sections:
+            node = node.setdefault(section, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"'{where}.{section}' must be a mapping (for '{where}.{k}')")
+        if leaf in node:
+            raise ConfigError(f"'{where}.{k}' and '{where}.{moved[k]}' are both set: keep one")
+        node[leaf] = data[k]
+    renames = ", ".join(f"{k} -> {moved[k]}" for k in old)
+    warnings.warn(
+        f"'{where}': these keys have moved and stop working in the next version; "
+        f"write them nested: {renames}",
+        ConfigDeprecationWarning,
+        stacklevel=3,
+    )
+    return out
+
+
 def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config") -> Any:
-    """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list."""
-    data = dict(data or {})
+    """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list
+    (moved keys of ``cls.deprecated_keys`` are upgraded first, with a warning)."""
+    data = upgrade_keys(cls, dict(data or {}), where)
     hints = typing.get_type_hints(cls)
     valid = [f.name for f in dataclasses.fields(cls) if f.init]
     unknown = sorted(set(data) - set(valid))
@@ -306,8 +342,38 @@ def from_dict(raw: dict[str, Any]) -> SlamConfig:
     if factors is not None:
         if not isinstance(factors, dict):
             raise ConfigError("'factors' must map factor plugin names to their settings")
-        raw["factors"] = {k: dict(v or {}) for k, v in factors.items()}
+        raw["factors"] = {
+            k: _upgrade_plugin_section("slam.factors", k, dict(v or {}), f"factors.{k}")
+            for k, v in factors.items()
+        }
+    for section, group in (("frontend", "slam.frontends"), ("backend", "slam.backends")):
+        if raw.get(section) is not None:
+            value = raw[section]
+            raw[section] = _upgrade_plugin_section(group, value["name"], value, section)
     return build_dataclass(SlamConfig, raw, "config")
+
+
+def _upgrade_plugin_section(
+    group: str, name: str, params: dict[str, Any], where: str
+) -> dict[str, Any]:
+    """A plugin section with its moved keys upgraded once, at load time (so that the one
+    warning is not repeated each time the section is validated). A plugin that cannot be
+    loaded is left to report itself where it is built."""
+    from slam import plugins  # slam.plugins imports this module
+
+    try:
+        cls = plugins.load(group, params.get("plugin", name))
+    except ConfigError:
+        return params
+    config_cls = getattr(cls, "Config", None)
+    if config_cls is None or not dataclasses.is_dataclass(config_cls):
+        return params
+    rest = {k: v for k, v in params.items() if k not in ("name", "plugin")}
+    upgraded = upgrade_keys(config_cls, rest, where)
+    if upgraded is rest:
+        return params
+    head = {k: params[k] for k in ("name", "plugin") if k in params}
+    return {**head, **upgraded}
 
 
 def load_config(name_or_path: str | None = None, overrides: list[str] | None = None) -> SlamConfig:
