@@ -5,7 +5,8 @@ A recipe is a mapping with the sections ``source``, ``frontend``, ``backend``,
 (``name: improved_floam``) and carry that plugin's own keys, validated against the
 plugin's ``Config`` dataclass. ``factors`` maps a factor plugin name (or an import
 path ``package.module:Class``) to its keys. A recipe may start from another with
-``base: NAME``. Unknown keys anywhere are errors that list the valid ones.
+``base: NAME``. Unknown keys anywhere are errors that list the valid ones. Defaults live
+in the dataclasses only: a recipe holds what differs from them.
 """
 
 from __future__ import annotations
@@ -47,11 +48,9 @@ class SourceConfig:
     that clouds without a ring field get one (slam.sensor); 0 = never.
     layout_time: per-point time for clouds stored beam by beam (KITTI's layout) without a
     time field, from each point's azimuth, so that the front end can deskew them: "always"
-    or "never" (default; "auto" is the same, kept for configs written by earlier releases).
-    KITTI publishes its scans motion-compensated, in its folders and in the bags converted
-    from them (kitti2bag): on the real KITTI-raw scans every time hypothesis raised the
-    registration residual (0.0265 m without, 0.0285 with), and on a KITTI-style simulated
-    bag deskewing the compensated scans again costs 3.7 -> 33 cm APE over 100 urban frames.
+    or "never" (default; "auto" means "never", kept for recipes of version 0.1). Off by
+    default because KITTI publishes its scans already motion-compensated (also in the bags
+    converted from them), and deskewing them again makes them worse.
     stamps: the clock that stamps a scan (slam.io.stamps). "header": the driver's header
     stamp; "record": the bag's record time (bags only); "auto": the header stamp unless it
     does not increase over the first 10 messages (running backwards, all equal), then the
