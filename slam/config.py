@@ -5,7 +5,8 @@ A recipe is a mapping with the sections ``source``, ``frontend``, ``backend``,
 (``name: improved_floam``) and carry that plugin's own keys, validated against the
 plugin's ``Config`` dataclass. ``factors`` maps a factor plugin name (or an import
 path ``package.module:Class``) to its keys. A recipe may start from another with
-``base: NAME``. Unknown keys anywhere are errors that list the valid ones.
+``base: NAME``. Unknown keys anywhere are errors that list the valid ones. Defaults live
+in the dataclasses only: a recipe holds what differs from them.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import copy
 import dataclasses
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
@@ -31,6 +33,10 @@ DEFAULT_CONFIG = "improved_floam"
 LAYOUT_TIME = ("auto", "always", "never")
 
 
+class ConfigDeprecationWarning(FutureWarning):
+    """A recipe key that still works but has moved; the message names its new place."""
+
+
 @dataclass
 class SourceConfig:
     """Which messages to read and how to treat damaged ones.
@@ -42,11 +48,9 @@ class SourceConfig:
     that clouds without a ring field get one (slam.sensor); 0 = never.
     layout_time: per-point time for clouds stored beam by beam (KITTI's layout) without a
     time field, from each point's azimuth, so that the front end can deskew them: "always"
-    or "never" (default; "auto" is the same, kept for configs written by earlier releases).
-    KITTI publishes its scans motion-compensated, in its folders and in the bags converted
-    from them (kitti2bag): on the real KITTI-raw scans every time hypothesis raised the
-    registration residual (0.0265 m without, 0.0285 with), and on a KITTI-style simulated
-    bag deskewing the compensated scans again costs 3.7 -> 33 cm APE over 100 urban frames.
+    or "never" (default; "auto" means "never", kept for recipes of version 0.1). Off by
+    default because KITTI publishes its scans already motion-compensated (also in the bags
+    converted from them), and deskewing them again makes them worse.
     stamps: the clock that stamps a scan (slam.io.stamps). "header": the driver's header
     stamp; "record": the bag's record time (bags only); "auto": the header stamp unless it
     does not increase over the first 10 messages (running backwards, all equal), then the
@@ -174,9 +178,40 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def upgrade_keys(cls: type, data: dict[str, Any], where: str) -> dict[str, Any]:
+    """``data`` with the keys ``cls.deprecated_keys`` maps (old key -> new dotted path) moved
+    to their new place, and one ConfigDeprecationWarning naming each new key. An old key
+    that is also a field of ``cls`` counts as old when its value is not a mapping."""
+    moved: dict[str, str] = getattr(cls, "deprecated_keys", None) or {}
+    fields = {f.name for f in dataclasses.fields(cls)}
+    old = [k for k in data if k in moved and not (k in fields and isinstance(data[k], dict))]
+    if not old:
+        return data
+    out = {k: copy.deepcopy(v) for k, v in data.items() if k not in old}
+    for k in old:
+        *sections, leaf = moved[k].split(".")
+        node = out
+        for section in sections:
+            node = node.setdefault(section, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"'{where}.{section}' must be a mapping (for '{where}.{k}')")
+        if leaf in node:
+            raise ConfigError(f"'{where}.{k}' and '{where}.{moved[k]}' are both set: keep one")
+        node[leaf] = data[k]
+    renames = ", ".join(f"{k} -> {moved[k]}" for k in old)
+    warnings.warn(
+        f"'{where}': these keys have moved and stop working in the next version; "
+        f"write them nested: {renames}",
+        ConfigDeprecationWarning,
+        stacklevel=3,
+    )
+    return out
+
+
 def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config") -> Any:
-    """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list."""
-    data = dict(data or {})
+    """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list
+    (moved keys of ``cls.deprecated_keys`` are upgraded first, with a warning)."""
+    data = upgrade_keys(cls, dict(data or {}), where)
     hints = typing.get_type_hints(cls)
     valid = [f.name for f in dataclasses.fields(cls) if f.init]
     unknown = sorted(set(data) - set(valid))
@@ -306,8 +341,38 @@ def from_dict(raw: dict[str, Any]) -> SlamConfig:
     if factors is not None:
         if not isinstance(factors, dict):
             raise ConfigError("'factors' must map factor plugin names to their settings")
-        raw["factors"] = {k: dict(v or {}) for k, v in factors.items()}
+        raw["factors"] = {
+            k: _upgrade_plugin_section("slam.factors", k, dict(v or {}), f"factors.{k}")
+            for k, v in factors.items()
+        }
+    for section, group in (("frontend", "slam.frontends"), ("backend", "slam.backends")):
+        if raw.get(section) is not None:
+            value = raw[section]
+            raw[section] = _upgrade_plugin_section(group, value["name"], value, section)
     return build_dataclass(SlamConfig, raw, "config")
+
+
+def _upgrade_plugin_section(
+    group: str, name: str, params: dict[str, Any], where: str
+) -> dict[str, Any]:
+    """A plugin section with its moved keys upgraded once, at load time (so that the one
+    warning is not repeated each time the section is validated). A plugin that cannot be
+    loaded is left to report itself where it is built."""
+    from slam import plugins  # slam.plugins imports this module
+
+    try:
+        cls = plugins.load(group, params.get("plugin", name))
+    except ConfigError:
+        return params
+    config_cls = getattr(cls, "Config", None)
+    if config_cls is None or not dataclasses.is_dataclass(config_cls):
+        return params
+    rest = {k: v for k, v in params.items() if k not in ("name", "plugin")}
+    upgraded = upgrade_keys(config_cls, rest, where)
+    if upgraded is rest:
+        return params
+    head = {k: params[k] for k in ("name", "plugin") if k in params}
+    return {**head, **upgraded}
 
 
 def load_config(name_or_path: str | None = None, overrides: list[str] | None = None) -> SlamConfig:

@@ -15,10 +15,13 @@ import open3d as o3d
 import pytest
 import small_gicp
 
+from slam.config import build_dataclass
 from slam.errors import ConfigError
 from slam.factors import GraphView, key
+from slam.loop.background import run_job
 from slam.loop.plugin import CSV_COLUMNS, LoopClosurePlugin
-from slam.loop.verify import VerifyParams, scaled_information, verify, yaw_matrix
+from slam.loop.search import Candidate
+from slam.loop.verify import VerifyParams, scaled_information, verify, yaw_matrix, yaw_of
 from slam.plugins import instantiate
 from slam.types import Keyframe
 
@@ -178,14 +181,19 @@ def _err(T_est, T_true):
     return float(np.linalg.norm(E[:3, 3])), float(ang)
 
 
-INDOOR = dict(max_radius=40.0, lidar_height=1.0)
+INDOOR = {"descriptor": {"max_radius": 40.0, "lidar_height": 1.0}}
+
+
+def loop_config(**sections) -> LoopClosurePlugin.Config:
+    """The loop closure's Config from nested sections, as a recipe gives them."""
+    return build_dataclass(LoopClosurePlugin.Config, sections, "factors.loop_closure")
 
 
 @pytest.fixture(scope="module")
 def hall_run():
     truth = _polyline(HALL_PATH, 2.0)
     odo = _drifting_odometry(truth)
-    plugin = LoopClosurePlugin(LoopClosurePlugin.Config(**INDOOR))
+    plugin = LoopClosurePlugin(loop_config(**INDOOR))
     factors = _run(plugin, truth, odo, _scene(_hall_boxes()))
     assert plugin.flush(None) == []  # in-process: nothing due; loops awaiting a partner expire
     return plugin, factors, truth, odo
@@ -197,7 +205,9 @@ def rooms_run():
     path = np.array([[4, 7.5], [4, 1.5], [14, 1.5], [14, 7.5], [14, 1.5], [4, 1.5], [4, 7.0]])
     truth = _polyline(path, 1.0) + [_pose(4.0, 7.0, np.pi / 2)]
     odo = _drifting_odometry(truth)
-    cfg = LoopClosurePlugin.Config(max_radius=20.0, lidar_height=1.0, exclude_recent=5)
+    cfg = loop_config(
+        descriptor={"max_radius": 20.0, "lidar_height": 1.0}, search={"exclude_recent": 5}
+    )
     plugin = LoopClosurePlugin(cfg)
     factors = _run(plugin, truth, odo, _scene(_rooms_boxes()), seed=1)
     assert plugin.flush(None) == []  # in-process: nothing due; loops awaiting a partner expire
@@ -263,7 +273,9 @@ def test_look_alike_room_rejected_true_return_accepted(rooms_run):
     assert factors
     for _, f in factors:
         cand, cur = (gtsam.Symbol(k).index() for k in f.keys())
-        assert np.linalg.norm(truth[cand][:2, 3] - truth[cur][:2, 3]) < plugin.config.max_offset
+        assert (
+            np.linalg.norm(truth[cand][:2, 3] - truth[cur][:2, 3]) < plugin.config.verify.max_offset
+        )
         t_err, r_err = _err(f.measured().matrix(), np.linalg.inv(truth[cand]) @ truth[cur])
         assert t_err < 0.05 and r_err < 0.5, (cand, cur, t_err, r_err)
     back_in_a = [f for _, f in factors if f.keys()[1] == key(len(truth) - 1)]
@@ -347,13 +359,16 @@ def test_disabled_plugin_returns_nothing_and_keeps_nothing():
 
 
 def test_config_validated_through_the_plugin_registry():
-    plugin = instantiate("slam.factors", {"name": "loop_closure", "sc_threshold": 0.2}, "loop")
+    params = {"name": "loop_closure", "search": {"threshold": 0.2}}
+    plugin = instantiate("slam.factors", params, "loop")
     assert isinstance(plugin, LoopClosurePlugin) and plugin.is_loop
     assert plugin.db.params.threshold == 0.2
-    with pytest.raises(ConfigError, match="valid keys"):
-        instantiate("slam.factors", {"name": "loop_closure", "sc_treshold": 0.2}, "loop")
+    with pytest.raises(ConfigError, match="valid keys of 'loop.search'"):
+        instantiate("slam.factors", {"name": "loop_closure", "search": {"treshold": 0.2}}, "loop")
     with pytest.raises(ConfigError, match="exclude_recent"):
-        instantiate("slam.factors", {"name": "loop_closure", "exclude_recent": 0}, "loop")
+        instantiate(
+            "slam.factors", {"name": "loop_closure", "search": {"exclude_recent": 0}}, "loop"
+        )
 
 
 def _vegetated_place(rng: np.random.Generator) -> np.ndarray:
@@ -405,7 +420,7 @@ def test_verify_judges_a_vegetated_revisit_on_structured_surfaces(monkeypatch):
 
 def test_bev_translation_finds_a_metres_long_offset():
     """The bird's-eye-view start: two hall scans 10 m apart, turned 10 deg, guess 12 deg."""
-    verify_mod = importlib.import_module("slam.loop.verify")
+    verify_mod = importlib.import_module("slam.loop.bev")
     rng = np.random.default_rng(4)
     scene = _scene(_hall_boxes())
     Ta, Tb = _pose(12, 6, 0.0), _pose(22, 7, np.radians(10))
@@ -413,7 +428,7 @@ def test_bev_translation_finds_a_metres_long_offset():
     T_true = np.linalg.inv(Ta) @ Tb
     T, share = verify_mod.bev_translation(a, b, np.radians(12), 20.0, 0.5, (-6, -3, 0, 3, 6))
     assert np.linalg.norm(T[:2, 3] - T_true[:2, 3]) < 1.0, (T[:3, 3], T_true[:3, 3])
-    assert abs(np.degrees(verify_mod.yaw_of(T)) - 10.0) <= 3.0
+    assert abs(np.degrees(yaw_of(T)) - 10.0) <= 3.0
     assert 0.0 < share <= 1.0
     res = verify(a, b, yaw_matrix(np.radians(12)))  # from the yaw alone, 10 m off
     assert res.accepted, res.reason
@@ -441,18 +456,20 @@ def test_auto_geometry_pools_the_first_keyframes():
         return np.column_stack([r * np.cos(a), r * np.sin(a), z])
 
     cfg = LoopClosurePlugin.Config()
-    first_only = auto_descriptor_params([ring(45.0)], cfg)
-    pooled = auto_descriptor_params([ring(45.0)] + [ring(62.0) for _ in range(9)], cfg)
+    first_only = auto_descriptor_params([ring(45.0)], cfg.descriptor)
+    pooled = auto_descriptor_params([ring(45.0)] + [ring(62.0) for _ in range(9)], cfg.descriptor)
     assert first_only.max_radius <= 55.0
     assert pooled.max_radius >= 70.0
     assert pooled.lidar_height == pytest.approx(1.7, abs=0.05)
     plugin = LoopClosurePlugin(cfg)
     view = GraphView([], lambda i: np.eye(4))
-    for i in range(cfg.auto_keyframes):
+    for i in range(cfg.descriptor.auto_keyframes):
         kf = Keyframe(i, 0.1 * i, i, np.eye(4), np.eye(4), np.eye(6), ring(62.0, 3000))
         plugin.on_keyframe(kf, view)
-        assert (plugin.sc_params is None) == (i < cfg.auto_keyframes - 1)
-    assert len(plugin.db) == cfg.auto_keyframes  # the buffered keyframes are all described
+        assert (plugin.sc_params is None) == (i < cfg.descriptor.auto_keyframes - 1)
+    assert (
+        len(plugin.db) == cfg.descriptor.auto_keyframes
+    )  # the buffered keyframes are all described
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
@@ -508,7 +525,7 @@ def test_street_driven_back_the_other_way_verifies_from_a_yaw_half_a_turn_off():
 def _bev_reference(target, source, yaw, search, cell, yaw_offsets_deg):
     """The first BEV search (numpy FFT padded to twice the image): the reference of the
     minimally padded, shared-spectrum one. Returns the correlation map of every offset."""
-    vm = importlib.import_module("slam.loop.verify")
+    vm = importlib.import_module("slam.loop.bev")
     tgt, src = vm._above_ground(target), vm._above_ground(source)
     half = int(np.ceil((search + 30.0) / cell))
     n = 2 * half
@@ -530,7 +547,7 @@ def _bev_reference(target, source, yaw, search, cell, yaw_offsets_deg):
 def test_bev_translation_equals_the_twice_padded_reference():
     """Padding by the search radius only (not by the image size) gives the same correlation:
     the returned shift and yaw are a maximum of the reference's, with the same peak share."""
-    vm = importlib.import_module("slam.loop.verify")
+    vm = importlib.import_module("slam.loop.bev")
     rng = np.random.default_rng(5)
     world = _street(rng)
     a = world - [0.0, -2.2, 1.8]
@@ -539,7 +556,7 @@ def test_bev_translation_equals_the_twice_padded_reference():
     T, share = vm.bev_translation(a, b, 0.0, 20.0, 0.5, offs)
     maps = _bev_reference(a, b, 0.0, 20.0, 0.5, offs)
     peak = max(m[0].max() for m in maps.values())
-    off = float(np.degrees(vm.yaw_of(T)))
+    off = float(np.degrees(yaw_of(T)))
     corr, shifts, occupied = maps[min(maps, key=lambda o: abs(o - off))]
     i = int(np.flatnonzero(shifts == round(T[0, 3] / 0.5))[0])
     j = int(np.flatnonzero(shifts == round(T[1, 3] / 0.5))[0])
@@ -548,54 +565,62 @@ def test_bev_translation_equals_the_twice_padded_reference():
     np.testing.assert_allclose(T[:2, 3], [7.0, 4.4], atol=0.75)  # and it is the true offset
 
 
+def _verify_now(plugin, kf, candidates, view):
+    """Verify ``kf``'s candidates in-process, as on_keyframe does."""
+    job = plugin.jobs.make(kf, candidates, view)
+    return plugin.record.finish(job, run_job(job, plugin.config.verify))
+
+
 def test_candidate_the_odometry_rules_out_is_not_registered(monkeypatch):
     """A candidate whose estimate lies farther than max_offset + the consistency allowance,
     or whose guessed yaw (either way round) cannot meet the estimate's, skips GICP."""
-    plugin_mod = importlib.import_module("slam.loop.plugin")
     calls = []  # verification jobs call verify() through slam.loop.background
     monkeypatch.setattr(
         importlib.import_module("slam.loop.background"),
         "verify",
         lambda *a: calls.append(a) or None,
     )
-    plugin = LoopClosurePlugin(LoopClosurePlugin.Config(max_radius=40.0, lidar_height=1.0))
+    plugin = LoopClosurePlugin(loop_config(**INDOOR))
     cloud = np.random.default_rng(0).normal(size=(100, 3))
     poses = {0: np.eye(4), 1: _pose(60.0, 0.0, 0.0)}
     kfs = [Keyframe(i, float(i), i, poses[i], np.eye(4), np.eye(6), cloud) for i in (0, 1)]
     view = GraphView(kfs, lambda i: poses[i])
-    plugin._travel = {0: 0.0, 1: 60.0}  # allowance 3 + 0.04 x 60 = 5.4 m < 60 - 20 m
-    far = plugin_mod.Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
-    assert plugin._verify_candidates(kfs[1], [far], view) == []
+    plugin.jobs.travel = {0: 0.0, 1: 60.0}  # allowance 3 + 0.04 x 60 = 5.4 m < 60 - 20 m
+    far = Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+    assert _verify_now(plugin, kfs[1], [far], view) == []
     assert "not registered" in plugin.events[-1].reason and not calls
     poses[1] = _pose(2.0, 0.0, np.radians(90))  # near, but turned a quarter turn
-    turned = plugin_mod.Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
-    assert plugin._verify_candidates(kfs[1], [turned], view) == []
+    turned = Candidate(row=0, kf_id=0, distance=0.1, shift=0, yaw=0.0)
+    assert _verify_now(plugin, kfs[1], [turned], view) == []
     assert "turns" in plugin.events[-1].reason and not calls, plugin.events[-1].reason
     assert plugin.stats()["skipped"] == 2 and plugin.stats()["registered"] == 0
     poses[1] = _pose(2.0, 0.0, np.radians(170))  # the other way round: the flip may reach it
-    assert plugin._unreachable(view, kfs[1], 0, yaw_matrix(0.0)) == ""
+    assert plugin.jobs.unreachable(view, kfs[1], 0, yaw_matrix(0.0)) == ""
 
 
 def test_plugin_keeps_no_copy_of_the_keyframe_clouds(hall_run):
     """Only descriptors and keys: verification reads the pipeline's Keyframe.cloud."""
     plugin = hall_run[0]
+    parts = (plugin, plugin.describer, plugin.proposer, plugin.jobs, plugin.record)
     held = sum(v.nbytes for v in vars(plugin.db).values() if isinstance(v, np.ndarray)) + sum(
-        v.nbytes for v in vars(plugin).values() if isinstance(v, np.ndarray)
+        v.nbytes for o in parts for v in vars(o).values() if isinstance(v, np.ndarray)
     )
     per_kf = held / len(plugin.db)
     assert per_kf < 20 * 60 * 4 * 3  # ~ a descriptor (20 x 60 float32) and its keys, not points
     assert not any(isinstance(v, dict) and v and isinstance(next(iter(v.values())), np.ndarray)
-                   for v in vars(plugin).values())  # fmt: skip
+                   for o in parts for v in vars(o).values())  # fmt: skip
 
 
 def test_worker_process_verification_equals_in_process_at_a_fixed_lag(rooms_run):
-    """verify_workers=1: the same candidates, decisions and loop transforms as verifying
+    """workers.processes=1: the same candidates, decisions and loop transforms as verifying
     in-process (the rooms: a rejected look-alike and accepted returns), each loop factor
-    returned exactly verify_lag keyframes later (the last ones by flush), whatever the
+    returned exactly workers.lag keyframes later (the last ones by flush), whatever the
     worker's speed."""
     plugin, factors, truth, odo = rooms_run
-    cfg = LoopClosurePlugin.Config(
-        max_radius=20.0, lidar_height=1.0, exclude_recent=5, verify_workers=1, verify_lag=2
+    cfg = loop_config(
+        descriptor={"max_radius": 20.0, "lidar_height": 1.0},
+        search={"exclude_recent": 5},
+        workers={"processes": 1, "lag": 2},
     )
     background = LoopClosurePlugin(cfg)
     try:

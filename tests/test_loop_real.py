@@ -19,6 +19,7 @@ from shared_data import shared_path
 
 from slam.factors import GraphView
 from slam.io.folders import read_cloud
+from slam.loop.config import SearchConfig
 from slam.loop.plugin import LoopClosurePlugin, auto_descriptor_params
 from slam.loop.scan_context import column_shift_distance, scan_context
 from slam.loop.verify import COARSE_REGISTRATIONS, VerifyParams, verify, yaw_matrix
@@ -153,7 +154,7 @@ def test_real_scan_context_ranks_revisits_ahead_of_unrelated_scans(pair, kitti):
     tgt, src, *_ = pair
     scans, *_ = kitti
     cfg = LoopClosurePlugin.Config()
-    p = auto_descriptor_params(scans[:10], cfg)
+    p = auto_descriptor_params(scans[:10], cfg.descriptor)
     # KITTI's Velodyne sits 1.73 m above the road; ranges up to ~80 m (99 %: ~50 m)
     assert 55.0 <= p.max_radius <= 80.0
     assert 1.5 < p.lidar_height < 2.2
@@ -175,7 +176,7 @@ def test_real_kitti_drive_through_the_plugin(kitti):
     first 10 keyframes; every candidate 8-17 m back along the street is a true revisit, so
     every accepted loop must carry the reference transform."""
     scans, chain, _ = kitti
-    cfg = LoopClosurePlugin.Config(exclude_recent=10, sc_threshold=0.35, max_verify=1)
+    cfg = LoopClosurePlugin.Config(search=SearchConfig(exclude_recent=10, threshold=0.35))
     plugin = LoopClosurePlugin(cfg)
     kfs: list[Keyframe] = []
     view = GraphView(kfs, lambda i: chain[i])

@@ -162,7 +162,7 @@ def test_same_place_two_metres_aside_matches_and_other_places_do_not(town):
     """Street sites of the synthetic town: seen again from 2 m aside/along with any heading,
     the distance stays under the default threshold; other places (20-60 m away) exceed it."""
     rng = np.random.default_rng(1)
-    threshold = LoopClosurePlugin.Config().sc_threshold
+    threshold = LoopClosurePlugin.Config().search.threshold
     for x0, y0 in [(48.0, 6.0), (6.0, 70.0)]:
         ref = scan_context(_scan(town, x0, y0, 0.3, rng))
         near = [

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.config import from_dict
+from slam.config import build_dataclass, from_dict, load_config
 from slam.deskew import deskew
 from slam.eval.metrics import evaluate_arrays
 from slam.frontend import KeyframeConfig, is_new_keyframe
 from slam.io.source import open_source
 from slam.io.trajectory import read_tum
 from slam.loop import scan_context_pp as pp
+from slam.loop.config import DescriptorConfig, SearchConfig
 from slam.loop.plugin import LoopClosurePlugin
 from slam.loop.scan_context import ScanContextParams, column_shift_distance, scan_context
 from slam.loop.verify import verify, yaw_matrix, yaw_of
@@ -29,8 +30,8 @@ from slam.sim.simulate import effective_model, make_scene
 from slam.types import Odometry
 
 HEIGHT = 1.8  # m: the urban car's sensor height
-SC_THRESHOLD = LoopClosurePlugin.Config().sc_threshold
-CC_THRESHOLD = LoopClosurePlugin.Config().cc_threshold
+SC_THRESHOLD = LoopClosurePlugin.Config().search.threshold
+CC_THRESHOLD = LoopClosurePlugin.Config().search.cc_threshold
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +208,7 @@ def _run_loop(replay, loop: dict):
 
 @pytest.mark.parametrize(
     "loop, min_loops",
-    [({"descriptor": "scan_context_pp"}, 5), ({"proposer": "radius"}, 10)],
+    [({"descriptor": {"kind": "scan_context_pp"}}, 5), ({"search": {"proposer": "radius"}}, 10)],
     ids=["scan_context_pp", "radius"],
 )
 def test_urban_opposite_direction_revisits_halve_the_ape(urban_replay, loop, min_loops):
@@ -225,14 +226,16 @@ def test_urban_opposite_direction_revisits_halve_the_ape(urban_replay, loop, min
 
 def test_descriptor_and_proposer_are_validated():
     with pytest.raises(ValueError, match="scan_context_pp"):
-        LoopClosurePlugin.Config(descriptor="scan_kontext")
+        DescriptorConfig(kind="scan_kontext")
     with pytest.raises(ValueError, match="radius"):
-        LoopClosurePlugin.Config(proposer="nearest")
-    for name in ("improved_floam_scpp_loop", "improved_floam_radius_loop"):
-        from slam.config import load_config
-
+        SearchConfig(proposer="nearest")
+    for name, kind, proposer in (
+        ("improved_floam_scpp_loop", "scan_context_pp", "descriptor"),
+        ("improved_floam_radius_loop", "scan_context", "radius"),
+    ):
         lc = load_config(name).factors["loop_closure"]
-        LoopClosurePlugin.Config(**{k: v for k, v in lc.items() if k != "plugin"})
+        cfg = build_dataclass(LoopClosurePlugin.Config, lc, "factors.loop_closure")
+        assert (cfg.descriptor.kind, cfg.search.proposer) == (kind, proposer)
 
 
 def test_lateral_shifts_equal_shift_rows():

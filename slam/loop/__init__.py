@@ -1,6 +1,7 @@
 """Loop closure: Scan Context and Scan Context++ descriptors, KD-tree candidate search,
-GICP verification, the factor plugin."""
+GICP verification, the factor plugin and its nested config."""
 
+from slam.loop.config import LoopConfig
 from slam.loop.scan_context import (
     ScanContextParams,
     column_shift_distance,
@@ -23,6 +24,7 @@ from slam.loop.verify import VerifyParams, VerifyResult, scaled_information, ver
 __all__ = [
     "Candidate",
     "CartesianIndex",
+    "LoopConfig",
     "ScanContextPPParams",
     "cartesian_context",
     "polar_context",

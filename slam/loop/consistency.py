@@ -32,15 +32,44 @@ import numpy as np
 
 
 @dataclass(frozen=True)
+class OdometryGateParams:
+    """The gate each registered loop passes against the estimates: it may move the current
+    keyframe from its estimate relative to the candidate by at most base + ratio x the
+    distance travelled between the two (m), and turn it by at most yaw_deg (ratio < 0: off).
+    Against perceptual aliasing: look-alike rooms, repetitive corridors, corridors seen
+    backwards. The ratio is the odometry drift allowed per metre travelled."""
+
+    base: float = 3.0
+    ratio: float = 0.04
+    yaw_deg: float = 45.0
+
+    @property
+    def enabled(self) -> bool:
+        return self.ratio >= 0
+
+    def allowed(self, travelled: float) -> float:
+        """Translation (m) a loop may move the keyframe after ``travelled`` m."""
+        return self.base + self.ratio * travelled
+
+
+@dataclass(frozen=True)
 class ConsistencyParams:
     """window (keyframes, 0 = off: every verified loop enters at once); base (m) + ratio x
-    travelled; base_deg (deg) + ratio_deg (deg per m) x travelled."""
+    travelled; base_deg (deg) + ratio_deg (deg per m) x travelled. A corridor that aliases a
+    registration metres along its axis rarely does so twice by the same offset; the cost: a
+    revisit seen by a single keyframe closes no loop."""
 
     window: int = 10
     base: float = 0.5
     ratio: float = 0.02
     base_deg: float = 2.0
     ratio_deg: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.window < 0 or min(self.base, self.ratio, self.base_deg, self.ratio_deg) < 0:
+            raise ValueError(
+                "window (keyframes) and base / ratio / base_deg / ratio_deg must be >= 0"
+            )
 
 
 @dataclass(eq=False)  # identity: loops are compared by object, never by value

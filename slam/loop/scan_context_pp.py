@@ -45,9 +45,7 @@ class ScanContextPPParams:
     to a fraction of a metre for the column cosines, its position along the street need
     not). lateral_shifts / longitudinal_shifts (bins): the augmented lateral row shifts and
     the longitudinal column shifts searched (+-10 rows of 0.5 m: the opposite lane 4.4 m
-    aside; +-5 columns: +-20 m along the street). On the simulated urban street these
-    defaults give CC distances 0.13-0.20 for revisits 1-4.4 m aside (both directions) and
-    >= 0.31 for places 30-150 m away (1 m lateral bins: 0.15-0.25 against 0.27).
+    aside; +-5 columns: +-20 m along the street).
     """
 
     rings: int = 20
