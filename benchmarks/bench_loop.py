@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from slam.factors import GraphView
+from slam.loop.config import ConsistencyConfig, DescriptorConfig, SearchConfig
+from slam.loop.consistency import OdometryGateParams
 from slam.loop.plugin import LoopClosurePlugin
 from slam.loop.scan_context import scan_context
 from slam.loop.verify import verify, yaw_matrix
@@ -201,7 +203,9 @@ def main() -> None:
     det_by = {}
     for descriptor in ("scan_context", "scan_context_pp"):
         cfg = LoopClosurePlugin.Config(
-            min_keyframe_gap=10**9, consistency_ratio=-1.0, descriptor=descriptor
+            descriptor=DescriptorConfig(kind=descriptor),
+            search=SearchConfig(min_keyframe_gap=10**9),
+            consistency=ConsistencyConfig(odometry=OdometryGateParams(ratio=-1.0)),
         )
         plugin = LoopClosurePlugin(cfg)
         kfs: list[Keyframe] = []
@@ -218,7 +222,7 @@ def main() -> None:
                 found = plugin.db.detect(d, kf.stamp)
                 search_ms.append(1e3 * (time.perf_counter() - t))
                 hits += found is not None
-        det_by[descriptor] = (np.array(plugin.detect_ms), plugin)
+        det_by[descriptor] = (np.array(plugin.times.detect_ms), plugin)
         if descriptor == "scan_context":
             sc_search, sc_hits = search_ms, hits
 

@@ -10,6 +10,7 @@ from frontends.lego_lpb import LegoLpb
 from slam.config import load_config
 from slam.frontend import Frontend
 from slam.io.source import open_source
+from slam.pipeline import resolved_config
 from slam.plugins import instantiate
 from slam.sim.cache import ensure_sequence
 
@@ -116,7 +117,8 @@ def test_recipes():
     assert lego.frontend["registration"]["ground_weight"] == 0.0
     assert lpb.frontend["registration"]["ground_weight"] == 0.2
     assert lpb.frontend["segmentation"]["enabled"] is False  # the preprocessing instead
-    assert lpb.frontend["keyframe"] == lego.frontend["keyframe"]
+    keyframe = [resolved_config(c)["frontend"]["keyframe"] for c in (lpb, lego)]
+    assert keyframe[0] == keyframe[1]
     assert lpb.factors["loop_closure"]["enabled"] is False
 
 
