@@ -8,7 +8,7 @@ corridor without features). Windows with at least ``min_plain`` (15 %) of their 
 within 2 m of a plain corridor stretch (``slam.sim.building.PLAIN``) are marked ``plain``
 (a slip there straddles two windows); the sums over
 the plain windows and over all the others separate the corridor slips from the error
-elsewhere (docs/lego_lpb.md, session 8 and 9).
+elsewhere (docs/paper001.md).
 
     .venv/bin/python benchmarks/slip_windows.py GT.tum label=RUN_DIR [label=RUN_DIR ...] \\
         [--window 100] [--show 0.8] [--json OUT.json] [--figure OUT.png]
