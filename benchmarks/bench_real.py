@@ -3,7 +3,12 @@ small_gicp and KISS-ICP run on the same scans in the same process.
 
     .venv/bin/python benchmarks/bench_real.py [--configs improved_floam floam ...]
         [--sequences kitti04 kitti05 hilti nuscenes] [--set frontend.cloud_voxel=0.2 ...]
-        [--no-peers] [--no-raw] [--json FILE] [--pair-spread]
+        [--variant LABEL:KEY=V[,KEY=V...] ...] [--no-peers] [--no-raw] [--json FILE]
+        [--pair-spread]
+
+--set overrides apply to every run of our recipes; each --variant runs every recipe once
+more with its overrides (an A/B in one session: same load, same scans), as
+``benchmarks/bench_scenes.py`` does.
 
 Sequences with reference poses (APE after SE(3) alignment and RPE over one frame, evo via
 ``slam.eval.metrics``): the first 10 scans of KITTI odometry 04 (in motion, ~14 m/s) and 05
@@ -161,11 +166,16 @@ def run_kiss_icp(scans: list[Scan]) -> Run:
 
 
 def run_system(name: str, scans: list[Scan], overrides: list[str]) -> Run:
+    """``name``: a peer, a recipe, or ``recipe@label`` (a variant: its overrides appended)."""
     if name == "small_gicp":
         return run_small_gicp(scans)
     if name == "kiss_icp":
         return run_kiss_icp(scans)
-    return run_ours(scans, name, overrides)
+    recipe, _, label = name.partition("@")
+    return run_ours(scans, recipe, [*overrides, *VARIANTS.get(label, [])])
+
+
+VARIANTS: dict[str, list[str]] = {}  # label -> overrides, from --variant
 
 
 def accuracy(run: Run, gt: np.ndarray) -> dict:
@@ -255,8 +265,13 @@ def main() -> None:
     ap.add_argument("--no-raw", action="store_true", help="skip KITTI-raw and the pair")
     ap.add_argument("--json", type=Path, help="write every number to this file")
     ap.add_argument("--pair-spread", action="store_true", help="other aligners on the pair")
+    ap.add_argument("--variant", nargs="+", default=[], help="LABEL:KEY=V[,KEY=V...]")
     args = ap.parse_args()
-    systems = [*args.configs, *([] if args.no_peers else PEERS)]
+    for v in args.variant:
+        label, _, sets = v.partition(":")
+        VARIANTS[label] = [x for x in sets.split(",") if x]
+    variants = [f"{c}@{label}" for label in VARIANTS for c in args.configs]
+    systems = [*args.configs, *variants, *([] if args.no_peers else PEERS)]
     results: dict = {}
     lines = [
         "| sequence | system | APE RMSE cm | APE max cm | RPE/frame cm | RPE max cm "

@@ -38,6 +38,10 @@ MAX_BACK_STEP_DEG = 5.0  # layout: a larger backward azimuth step is a forward g
 # by atan(shift / r): 6-11 deg back steps at 1.3-1.9 m on KITTI odometry at 10 m/s
 NEAR_SHIFT_M = 1.0
 LAYOUT_SEAM_DEG = 3.0  # beams of a layout scan start their turn within this azimuth
+# motion compensation stretches a sweep beyond one turn (near points at car speed): the
+# first / last beam then spills past the seam, a fragment of < this share of a beam's
+# points lying within SEAM_SPILL_DEG of the seam
+SEAM_SPILL_SHARE, SEAM_SPILL_DEG = 0.25, 90.0
 
 
 def elevation_deg(xyz: np.ndarray) -> np.ndarray:
@@ -106,6 +110,44 @@ def _turn_spread(u: np.ndarray, elev: np.ndarray, phase: float) -> float:
     return float(np.mean(np.abs(elev - med[turn])))
 
 
+def _merge_spills(
+    turn: np.ndarray,
+    n_turns: int,
+    phase: np.ndarray | None,
+    u: np.ndarray | None = None,
+    shift: float = 0.0,
+    counts: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
+    """(turn, n_turns) with a first / last turn that is only the spill of its neighbour
+    beam past the seam merged into it: fewer than SEAM_SPILL_SHARE of the median turn's
+    points, all within SEAM_SPILL_DEG after (last turn) / before (first turn) the seam (or
+    LAYOUT_SEAM_DEG on its other side, where the beams begin staggered). phase: (N,) azimuth (rad) advanced from the seam, or computed from u - shift."""
+    if n_turns < MIN_TURN_BEAMS + 1:
+        return turn, n_turns
+    if counts is None:
+        counts = np.bincount(turn, minlength=n_turns)
+    small = SEAM_SPILL_SHARE * np.median(counts)
+    spill, window = np.radians(SEAM_SPILL_DEG), np.radians(LAYOUT_SEAM_DEG)
+    two_pi = 2 * np.pi
+
+    def phases(m: np.ndarray) -> np.ndarray:
+        return phase[m] if phase is not None else (u[m] - shift) % two_pi
+
+    if counts[-1] < small:
+        last = turn == n_turns - 1
+        p = phases(last)
+        if np.all((p < spill) | (p > two_pi - window)):
+            turn = np.where(last, n_turns - 2, turn)
+            n_turns -= 1
+    if counts[0] < small:
+        first = turn == 0
+        p = phases(first)
+        if np.all((p > two_pi - spill) | (p < window)):
+            turn = np.where(first, 0, turn - 1)
+            n_turns -= 1
+    return turn, n_turns
+
+
 def layout_seam(xyz: np.ndarray) -> float | None:
     """Azimuth (rad, atan2 frame) where the beams of a beam-by-beam cloud begin their turn,
     or None when the cloud is not stored beam by beam.
@@ -169,7 +211,7 @@ def layout_rings_reference(xyz: np.ndarray, seam: float | None = None) -> np.nda
         move = (d_other < d_own) | (np.isnan(d_own) & ~np.isnan(d_other))
         turn[i[move]] = other[i[move]]
     ids, turn = np.unique(turn, return_inverse=True)
-    n_turns = len(ids)
+    turn, n_turns = _merge_spills(turn, len(ids), phase)
     counts = np.bincount(turn, minlength=n_turns)
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
         return None
@@ -209,6 +251,11 @@ def _layout_rings_polar(
     )
     if not MIN_TURN_BEAMS <= n_first <= MAX_TURN_BEAMS + 1:
         return None
+    merged, n_merged = _merge_spills(turn, n_turns, None, u, shift, counts)
+    if n_merged != n_turns:
+        turn, n_turns = merged, n_merged
+        counts = np.bincount(turn, minlength=n_turns)
+        med = _group_medians_kernel(elev, turn, np.ones(len(turn), np.bool_), n_turns)
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
         return None
     d = np.diff(med)

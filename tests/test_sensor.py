@@ -286,3 +286,22 @@ def test_near_points_stepping_back_keep_the_layout() -> None:
     far = glitched.copy()
     far[[5000, 30000, 50000]] *= 20.0
     assert int(layout_rings(far, model.seam_rad).max()) + 1 == 67
+
+
+def test_a_sweep_stretched_past_the_seam_keeps_its_beams() -> None:
+    """Motion compensation to the sweep start stretches a moving scan past one turn: the
+    last beam's final near points lie beyond the seam (the simulated HDL-64E at 9 m/s: 251
+    points of the lowest beam, 48 deg past it, read as a 65th beam). They are that beam."""
+    elev = SENSORS["HDL-64E"]
+    xyz, ring = spin(elev, 900, "ring", seed=7)
+    az = np.radians(np.arange(1, 61) * 0.4)  # 60 more points of the last beam, 24 deg on
+    el = np.radians(elev[-1])
+    tail = 5.0 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az])
+    for xyz_, ring_ in ((xyz, ring), (xyz[::-1], ring[::-1])):  # spill after / before
+        order = [xyz_, tail.T] if xyz_ is xyz else [tail.T[::-1], xyz_]
+        cloud = np.concatenate(order)
+        model = estimate_beams([cloud])
+        assert model.n_beams == 64 and model.layout
+        want = np.concatenate([ring_, np.full(60, 63)] if xyz_ is xyz else [np.full(60, 63), ring_])
+        assert np.array_equal(model.ring_of(cloud), want)
+        assert np.array_equal(layout_rings(cloud), want)
