@@ -3,14 +3,19 @@
 The elevation table (one angle per beam) is read once from the first scans and then assigns
 every point of every later scan to a beam (``BeamModel.ring_of``). Two cues, in this order:
 
-1. Point layout. Clouds converted from KITTI .bin files and organised clouds (Ouster,
+1. Point layout (beam by beam). Clouds converted from KITTI .bin files and organised clouds (Ouster,
    ``ring``-less Velodyne exports) store the points beam by beam: along the stored order the
    azimuth unwraps to about one turn per beam. Then the beams are the turns of the unwrapped
    azimuth, exact even where two beams' elevations overlap (HDL-64's upper block is 1/3 deg
    apart while each beam's origin sits a few cm off the sensor origin, so elevations seen from
    the origin smear by ~0.3 deg at 10 m).
-2. Elevation histogram. Otherwise (firing-order clouds, shuffled clouds) the beams are the
-   peaks of the histogram of elevation angles, and a point belongs to the nearest beam.
+2. Column order. Clouds stored column by column with every beam in every column (nuScenes
+   HDL-32E: 32 points per firing, missing returns included) hold beam b at position
+   i % B of every column: the ring of a point is that of its position, exact even where
+   near returns smear a beam's elevation by a degree (the car's own body, nuScenes).
+3. Elevation histogram. Otherwise (firing-order clouds without missing returns, shuffled
+   clouds) the beams are the peaks of the histogram of elevation angles, and a point
+   belongs to the nearest beam.
 
 Ring 0 is the lowest beam (Velodyne's ``ring`` convention).
 """
@@ -121,7 +126,8 @@ def _merge_spills(
     """(turn, n_turns) with a first / last turn that is only the spill of its neighbour
     beam past the seam merged into it: fewer than SEAM_SPILL_SHARE of the median turn's
     points, all within SEAM_SPILL_DEG after (last turn) / before (first turn) the seam (or
-    LAYOUT_SEAM_DEG on its other side, where the beams begin staggered). phase: (N,) azimuth (rad) advanced from the seam, or computed from u - shift."""
+    LAYOUT_SEAM_DEG on its other side, where the beams begin staggered).
+    phase: (N,) azimuth (rad) advanced from the seam, or computed from u - shift."""
     if n_turns < MIN_TURN_BEAMS + 1:
         return turn, n_turns
     if counts is None:
@@ -292,7 +298,8 @@ class BeamModel:
     then reads the rings from the point order); seam_rad: the azimuth (rad) where their
     turns begin. max_range: 99th percentile of the ranges (m)
     of the scans it was estimated from (e.g. Scan Context's radius). source: "ring field",
-    "point layout" or "elevation histogram".
+    "point layout", "column order" or "elevation histogram". column_rings: for clouds stored
+    column by column with B points per column, the ring of position i % B (None otherwise).
     """
 
     elevations_deg: np.ndarray
@@ -300,6 +307,7 @@ class BeamModel:
     seam_rad: float | None = None
     max_range: float = 0.0
     source: str = "elevation histogram"
+    column_rings: np.ndarray | None = None  # column order: (B,) ring of each position
 
     @property
     def n_beams(self) -> int:
@@ -372,6 +380,10 @@ class BeamModel:
             if want_time and fa is not None:
                 phase = (fa[1] * (az - self.seam_rad)) % (2 * np.pi)
                 time_out = phase / (2 * np.pi) * period_s
+        if ring and ring_out is None and self.column_rings is not None:
+            b = len(self.column_rings)
+            if len(xyz) % b == 0:
+                ring_out = np.tile(self.column_rings, len(xyz) // b)
         if ring and ring_out is None:
             ring_out = self._nearest_beam(elev)
         return ring_out, time_out
@@ -434,6 +446,38 @@ def beams_from_rings(scans: list[np.ndarray], rings: list[np.ndarray]) -> BeamMo
     return BeamModel(np.sort(med), layout=False, max_range=max_range, source="ring field")
 
 
+def column_rings(scans: list[np.ndarray]) -> np.ndarray | None:
+    """(B,) int16 ring of each position within a column when every scan is stored column by
+    column with B points per column (B in MIN_TURN_BEAMS..MAX_TURN_BEAMS), else None.
+
+    B fits when the elevations at each position i % B of every scan are one tight band (median
+    deviation from the position's median < 1/4 of the median gap between adjacent bands)
+    and no two positions share a band (every gap > MIN_BEAM_GAP_DEG: twice the true B
+    would repeat each band). Points without a return (at the origin) count for nothing.
+    """
+    sizes = {len(s) for s in scans}
+    if not scans or min(sizes) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
+        return None
+    best = None
+    for b in range(MIN_TURN_BEAMS, MAX_TURN_BEAMS + 1):
+        if any(n % b for n in sizes):
+            continue
+        elev = np.concatenate([elevation_deg(s) for s in scans])
+        pos = np.concatenate([np.arange(len(s)) % b for s in scans])
+        ok = np.concatenate([np.einsum("ij,ij->i", s, s) > 1e-6 for s in scans])
+        med = _group_medians(elev[ok], pos[ok], b)
+        if np.isnan(med).any():
+            continue
+        gaps = np.diff(np.sort(med))
+        spread = float(np.median(np.abs(elev[ok] - med[pos[ok]])))
+        if gaps.min() > MIN_BEAM_GAP_DEG and spread < 0.25 * np.median(gaps):
+            if best is None or spread < best[0]:
+                best = (spread, med)
+    if best is None:
+        return None
+    return np.argsort(np.argsort(best[1], kind="stable")).astype(np.int16)
+
+
 def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
     """Beam model from the (N, 3) xyz of the first few scans (3-5 are plenty).
 
@@ -442,7 +486,7 @@ def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
     elevation histogram of all points. One odd scan (a glitch the layout test does not
     explain) thus no longer sends a whole run to the histogram.
     """
-    scans = _check_scans(scans)
+    given, scans = scans, _check_scans(scans)
     max_range = float(np.percentile(_ranges(scans), 99))
     seams = [layout_seam(s) for s in scans]
     found = [x for x in seams if x is not None]
@@ -459,6 +503,14 @@ def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
             ring = np.concatenate([per_scan[i] for i in use]).astype(np.int64)
             med = _group_medians(elev, ring, n)
             return BeamModel(np.sort(med), True, seam, max_range=max_range, source="point layout")
+    raw = [np.asarray(s, dtype=np.float64) for s in given]
+    cols = column_rings(raw) if all(np.isfinite(s).all() for s in raw) else None
+    if cols is not None:
+        elev = np.concatenate([elevation_deg(s) for s in raw])
+        pos = np.concatenate([cols[np.arange(len(s)) % len(cols)] for s in raw]).astype(np.int64)
+        ok = np.concatenate([np.einsum("ij,ij->i", s, s) > 1e-6 for s in raw])
+        med = _group_medians(elev[ok], pos[ok], len(cols))
+        return BeamModel(med, max_range=max_range, source="column order", column_rings=cols)
     elev = np.concatenate([elevation_deg(s) for s in scans])
     return BeamModel(_histogram_beams(elev), layout=False, max_range=max_range)
 

@@ -254,3 +254,31 @@ def test_kitti_odometry_hand_checked_column():
     # the origin a beam's elevation shifts with range, its laser being a few cm off it)
     elev = np.degrees(np.arctan2(xyz[column, 2], np.hypot(*xyz[column, :2].T)))
     assert np.sum(model._nearest_beam(elev) != ring) == 13
+
+
+def test_nuscenes_hdl32_column_order_gives_32_beams():
+    """nuScenes stores its HDL-32E keyframes column by column, all 32 beams in every column
+    (34688 = 1084 x 32 points): near returns (the car's own body within 5 m) smear the lower
+    beams' elevations by ~1 deg, and the histogram found 49 "beams"; the column order gives
+    each point its beam exactly."""
+    folder = shared_path("nuscenes_keyframes", "clouds")
+    scans = [read_cloud(folder / f"{i}.pcd", index=i) for i in range(3)]
+    model = estimate_beams([s.xyz for s in scans])
+    assert model.n_beams == 32 and model.source == "column order"
+    assert np.allclose(model.fov_deg, (-30.67, 10.67), atol=0.1)  # the data sheet's
+    assert abs(model.vertical_resolution_deg - 4 / 3) < 0.02
+    ring = model.ring_of(scans[0].xyz)
+    assert np.array_equal(ring[:64], np.tile(np.arange(32), 2))  # bottom up in each column
+    assert np.all(np.bincount(ring) == len(scans[0]) // 32)
+
+
+def test_hilti_pandar_xt32_beams():
+    """The Hilti scans (PandarXT-32, 1 deg apart) are stored in firing order without the
+    missing returns: from the histogram, the 28 beams that see anything, +14.9..-12.1 deg
+    (the lowest four, down to -16 deg, return nothing in these scans)."""
+    folder = shared_path("hilti_indoor", "clouds")
+    scans = [read_cloud(folder / f"{i}.pcd", index=i) for i in range(3)]
+    model = estimate_beams([s.xyz for s in scans])
+    assert model.n_beams == 28 and model.source == "elevation histogram"
+    assert np.allclose(model.fov_deg, (-12.1, 14.9), atol=0.1)
+    assert np.allclose(np.diff(model.elevations_deg), 1.0, atol=0.05)
