@@ -3,14 +3,19 @@
 The elevation table (one angle per beam) is read once from the first scans and then assigns
 every point of every later scan to a beam (``BeamModel.ring_of``). Two cues, in this order:
 
-1. Point layout. Clouds converted from KITTI .bin files and organised clouds (Ouster,
+1. Point layout (beam by beam). Clouds converted from KITTI .bin files and organised clouds (Ouster,
    ``ring``-less Velodyne exports) store the points beam by beam: along the stored order the
    azimuth unwraps to about one turn per beam. Then the beams are the turns of the unwrapped
    azimuth, exact even where two beams' elevations overlap (HDL-64's upper block is 1/3 deg
    apart while each beam's origin sits a few cm off the sensor origin, so elevations seen from
    the origin smear by ~0.3 deg at 10 m).
-2. Elevation histogram. Otherwise (firing-order clouds, shuffled clouds) the beams are the
-   peaks of the histogram of elevation angles, and a point belongs to the nearest beam.
+2. Column order. Clouds stored column by column with every beam in every column (nuScenes
+   HDL-32E: 32 points per firing, missing returns included) hold beam b at position
+   i % B of every column: the ring of a point is that of its position, exact even where
+   near returns smear a beam's elevation by a degree (the car's own body, nuScenes).
+3. Elevation histogram. Otherwise (firing-order clouds without missing returns, shuffled
+   clouds) the beams are the peaks of the histogram of elevation angles, and a point
+   belongs to the nearest beam.
 
 Ring 0 is the lowest beam (Velodyne's ``ring`` convention).
 """
@@ -32,8 +37,16 @@ MIN_BEAM_GAP_DEG = 0.1  # two peaks closer than this are one beam
 MIN_PEAK_SHARE = 0.05  # a peak holding < 5 % of the median peak's points is noise
 MIN_TURN_BEAMS, MAX_TURN_BEAMS = 4, 256  # layout cue: accepted number of azimuth turns
 MIN_TURN_POINTS = 100  # a beam of a layout scan has at least this many points
-MAX_BACK_STEP_DEG = 5.0  # layout: a larger backward azimuth step is a forward gap
+MAX_BACK_STEP_DEG = 5.0  # layout: a larger backward azimuth step is a forward gap...
+# ...unless a near point explains it: motion compensation (KITTI odometry) and the lasers'
+# offsets from the origin move a point at range r by up to this much (m), i.e. its azimuth
+# by atan(shift / r): 6-11 deg back steps at 1.3-1.9 m on KITTI odometry at 10 m/s
+NEAR_SHIFT_M = 1.0
 LAYOUT_SEAM_DEG = 3.0  # beams of a layout scan start their turn within this azimuth
+# motion compensation stretches a sweep beyond one turn (near points at car speed): the
+# first / last beam then spills past the seam, a fragment of < this share of a beam's
+# points lying within SEAM_SPILL_DEG of the seam
+SEAM_SPILL_SHARE, SEAM_SPILL_DEG = 0.25, 90.0
 
 
 def elevation_deg(xyz: np.ndarray) -> np.ndarray:
@@ -67,8 +80,11 @@ def _forward_azimuth(xyz: np.ndarray) -> tuple[np.ndarray, float, float] | None:
     if np.mean(step < -1e-3) > 0.05:
         return None
     # within a beam's turn the azimuth only advances: a large backward step is a forward gap
-    # (no returns over > 180 deg, e.g. sky), not a step back
-    step = np.where(step < -np.radians(MAX_BACK_STEP_DEG), step + 2 * np.pi, step)
+    # (no returns over > 180 deg, e.g. sky), not a step back, unless a near point explains it
+    rho = np.hypot(xyz[:, 0], xyz[:, 1])
+    near = np.minimum(rho[:-1], rho[1:])
+    allowed = np.maximum(np.radians(MAX_BACK_STEP_DEG), np.arctan2(NEAR_SHIFT_M, near))
+    step = np.where(step < -allowed, step + 2 * np.pi, step)
     u = np.r_[0.0, np.cumsum(step)]
     n_est = int(u[-1] // (2 * np.pi)) + 1
     if not MIN_TURN_BEAMS <= n_est <= MAX_TURN_BEAMS + 1:
@@ -76,12 +92,13 @@ def _forward_azimuth(xyz: np.ndarray) -> tuple[np.ndarray, float, float] | None:
     return u, sign, float(az[0])
 
 
-def _forward_from_azimuth(az: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """(u, sign) of ``_forward_azimuth`` from the azimuths (rad) already computed, through
-    the compiled ``_forward_kernel``; None where the reference returns None."""
+def _forward_from_azimuth(az: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(u, sign) of ``_forward_azimuth`` from the azimuths (rad) and horizontal ranges (m)
+    already computed, through the compiled ``_forward_kernel``; None where the reference
+    returns None."""
     if len(az) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
         return None
-    u, sign, ok = _forward_kernel(az, np.radians(MAX_BACK_STEP_DEG))
+    u, sign, ok = _forward_kernel(az, rho, np.radians(MAX_BACK_STEP_DEG), NEAR_SHIFT_M)
     if not ok or not np.isfinite(u[-1]):  # a non-finite point has no azimuth
         return None
     n_est = int(u[-1] // (2 * np.pi)) + 1
@@ -96,6 +113,45 @@ def _turn_spread(u: np.ndarray, elev: np.ndarray, phase: float) -> float:
     turn -= turn.min()
     med = _group_medians(elev, turn, int(turn.max()) + 1)
     return float(np.mean(np.abs(elev - med[turn])))
+
+
+def _merge_spills(
+    turn: np.ndarray,
+    n_turns: int,
+    phase: np.ndarray | None,
+    u: np.ndarray | None = None,
+    shift: float = 0.0,
+    counts: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
+    """(turn, n_turns) with a first / last turn that is only the spill of its neighbour
+    beam past the seam merged into it: fewer than SEAM_SPILL_SHARE of the median turn's
+    points, all within SEAM_SPILL_DEG after (last turn) / before (first turn) the seam (or
+    LAYOUT_SEAM_DEG on its other side, where the beams begin staggered).
+    phase: (N,) azimuth (rad) advanced from the seam, or computed from u - shift."""
+    if n_turns < MIN_TURN_BEAMS + 1:
+        return turn, n_turns
+    if counts is None:
+        counts = np.bincount(turn, minlength=n_turns)
+    small = SEAM_SPILL_SHARE * np.median(counts)
+    spill, window = np.radians(SEAM_SPILL_DEG), np.radians(LAYOUT_SEAM_DEG)
+    two_pi = 2 * np.pi
+
+    def phases(m: np.ndarray) -> np.ndarray:
+        return phase[m] if phase is not None else (u[m] - shift) % two_pi
+
+    if counts[-1] < small:
+        last = turn == n_turns - 1
+        p = phases(last)
+        if np.all((p < spill) | (p > two_pi - window)):
+            turn = np.where(last, n_turns - 2, turn)
+            n_turns -= 1
+    if counts[0] < small:
+        first = turn == 0
+        p = phases(first)
+        if np.all((p > two_pi - spill) | (p < window)):
+            turn = np.where(first, 0, turn - 1)
+            n_turns -= 1
+    return turn, n_turns
 
 
 def layout_seam(xyz: np.ndarray) -> float | None:
@@ -161,7 +217,7 @@ def layout_rings_reference(xyz: np.ndarray, seam: float | None = None) -> np.nda
         move = (d_other < d_own) | (np.isnan(d_own) & ~np.isnan(d_other))
         turn[i[move]] = other[i[move]]
     ids, turn = np.unique(turn, return_inverse=True)
-    n_turns = len(ids)
+    turn, n_turns = _merge_spills(turn, len(ids), phase)
     counts = np.bincount(turn, minlength=n_turns)
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
         return None
@@ -183,21 +239,17 @@ def layout_rings(xyz: np.ndarray, seam: float | None = None) -> np.ndarray | Non
         if seam is None:
             return None
     az = np.arctan2(xyz[:, 1], xyz[:, 0])
-    return _layout_rings_polar(az, elevation_deg(xyz), seam)
+    fa = _forward_from_azimuth(az, np.hypot(xyz[:, 0], xyz[:, 1]))
+    return _layout_rings_polar(az, elevation_deg(xyz), seam, fa)
 
 
 def _layout_rings_polar(
-    az: np.ndarray,
-    elev: np.ndarray,
-    seam: float,
-    fa: tuple[np.ndarray, float] | None = None,
+    az: np.ndarray, elev: np.ndarray, seam: float, fa: tuple[np.ndarray, float] | None
 ) -> np.ndarray | None:
-    """``layout_rings`` from the azimuths (rad) and elevations (deg) of the points; fa: their
-    ``_forward_from_azimuth`` when already computed."""
+    """``layout_rings`` from the azimuths (rad) and elevations (deg) of the points and their
+    ``_forward_from_azimuth`` (None: not a layout)."""
     if fa is None:
-        fa = _forward_from_azimuth(az)
-        if fa is None:
-            return None
+        return None
     u, sign = fa
     shift = (sign * (seam - float(az[0]))) % (2 * np.pi)
     turn, n_first, n_turns, counts, med = _layout_kernel(
@@ -205,6 +257,11 @@ def _layout_rings_polar(
     )
     if not MIN_TURN_BEAMS <= n_first <= MAX_TURN_BEAMS + 1:
         return None
+    merged, n_merged = _merge_spills(turn, n_turns, None, u, shift, counts)
+    if n_merged != n_turns:
+        turn, n_turns = merged, n_merged
+        counts = np.bincount(turn, minlength=n_turns)
+        med = _group_medians_kernel(elev, turn, np.ones(len(turn), np.bool_), n_turns)
     if not MIN_TURN_BEAMS <= n_turns <= MAX_TURN_BEAMS or np.median(counts) < MIN_TURN_POINTS:
         return None
     d = np.diff(med)
@@ -241,7 +298,8 @@ class BeamModel:
     then reads the rings from the point order); seam_rad: the azimuth (rad) where their
     turns begin. max_range: 99th percentile of the ranges (m)
     of the scans it was estimated from (e.g. Scan Context's radius). source: "ring field",
-    "point layout" or "elevation histogram".
+    "point layout", "column order" or "elevation histogram". column_rings: for clouds stored
+    column by column with B points per column, the ring of position i % B (None otherwise).
     """
 
     elevations_deg: np.ndarray
@@ -249,6 +307,7 @@ class BeamModel:
     seam_rad: float | None = None
     max_range: float = 0.0
     source: str = "elevation histogram"
+    column_rings: np.ndarray | None = None  # column order: (B,) ring of each position
 
     @property
     def n_beams(self) -> int:
@@ -304,7 +363,8 @@ class BeamModel:
             valid = np.einsum("ij,ij->i", xyz, xyz) > 1e-6  # False for NaN too
             every = bool(valid.all())
             az_v = az if every else az[valid]
-            fa = _forward_from_azimuth(az_v)
+            rho = np.hypot(xyz[:, 0], xyz[:, 1])
+            fa = _forward_from_azimuth(az_v, rho if every else rho[valid])
             if ring and fa is not None:
                 elev_v = elev if every else elev[valid]
                 seam = self.seam_rad
@@ -320,6 +380,10 @@ class BeamModel:
             if want_time and fa is not None:
                 phase = (fa[1] * (az - self.seam_rad)) % (2 * np.pi)
                 time_out = phase / (2 * np.pi) * period_s
+        if ring and ring_out is None and self.column_rings is not None:
+            b = len(self.column_rings)
+            if len(xyz) % b == 0:
+                ring_out = np.tile(self.column_rings, len(xyz) // b)
         if ring and ring_out is None:
             ring_out = self._nearest_beam(elev)
         return ring_out, time_out
@@ -382,26 +446,71 @@ def beams_from_rings(scans: list[np.ndarray], rings: list[np.ndarray]) -> BeamMo
     return BeamModel(np.sort(med), layout=False, max_range=max_range, source="ring field")
 
 
+def column_rings(scans: list[np.ndarray]) -> np.ndarray | None:
+    """(B,) int16 ring of each position within a column when every scan is stored column by
+    column with B points per column (B in MIN_TURN_BEAMS..MAX_TURN_BEAMS), else None.
+
+    B fits when the elevations at each position i % B of every scan are one tight band (median
+    deviation from the position's median < 1/4 of the median gap between adjacent bands)
+    and no two positions share a band (every gap > MIN_BEAM_GAP_DEG: twice the true B
+    would repeat each band). Points without a return (at the origin) count for nothing.
+    """
+    sizes = {len(s) for s in scans}
+    if not scans or min(sizes) < MIN_TURN_BEAMS * MIN_TURN_POINTS:
+        return None
+    best = None
+    for b in range(MIN_TURN_BEAMS, MAX_TURN_BEAMS + 1):
+        if any(n % b for n in sizes):
+            continue
+        elev = np.concatenate([elevation_deg(s) for s in scans])
+        pos = np.concatenate([np.arange(len(s)) % b for s in scans])
+        ok = np.concatenate([np.einsum("ij,ij->i", s, s) > 1e-6 for s in scans])
+        med = _group_medians(elev[ok], pos[ok], b)
+        if np.isnan(med).any():
+            continue
+        gaps = np.diff(np.sort(med))
+        spread = float(np.median(np.abs(elev[ok] - med[pos[ok]])))
+        if gaps.min() > MIN_BEAM_GAP_DEG and spread < 0.25 * np.median(gaps):
+            if best is None or spread < best[0]:
+                best = (spread, med)
+    if best is None:
+        return None
+    return np.argsort(np.argsort(best[1], kind="stable")).astype(np.int16)
+
+
 def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
     """Beam model from the (N, 3) xyz of the first few scans (3-5 are plenty).
 
-    When every scan is stored beam by beam with the same beam count, the table is the median
-    elevation per azimuth turn; otherwise the peaks of the elevation histogram of all points.
+    When most scans (more than half) are stored beam by beam with the same beam count, the
+    table is the median elevation per azimuth turn of those; otherwise the peaks of the
+    elevation histogram of all points. One odd scan (a glitch the layout test does not
+    explain) thus no longer sends a whole run to the histogram.
     """
-    scans = _check_scans(scans)
+    given, scans = scans, _check_scans(scans)
     max_range = float(np.percentile(_ranges(scans), 99))
     seams = [layout_seam(s) for s in scans]
-    if all(x is not None for x in seams):
+    found = [x for x in seams if x is not None]
+    if 2 * len(found) > len(scans):
         # one seam for the sensor: the circular median of the scans'
-        ref = float(seams[0])
-        seam = ref + float(np.median([(x - ref + np.pi) % (2 * np.pi) - np.pi for x in seams]))
+        ref = float(found[0])
+        seam = ref + float(np.median([(x - ref + np.pi) % (2 * np.pi) - np.pi for x in found]))
         per_scan = [layout_rings(s, seam) for s in scans]
-        counts = {None if r is None else int(r.max()) + 1 for r in per_scan}
-        if None not in counts and len(counts) == 1:
-            elev = np.concatenate([elevation_deg(s) for s in scans])
-            ring = np.concatenate(per_scan).astype(np.int64)
-            med = _group_medians(elev, ring, counts.pop())
+        counts = [0 if r is None else int(r.max()) + 1 for r in per_scan]
+        n = max(set(counts), key=counts.count)
+        use = [i for i, c in enumerate(counts) if c == n]
+        if n and 2 * len(use) > len(scans):
+            elev = np.concatenate([elevation_deg(scans[i]) for i in use])
+            ring = np.concatenate([per_scan[i] for i in use]).astype(np.int64)
+            med = _group_medians(elev, ring, n)
             return BeamModel(np.sort(med), True, seam, max_range=max_range, source="point layout")
+    raw = [np.asarray(s, dtype=np.float64) for s in given]
+    cols = column_rings(raw) if all(np.isfinite(s).all() for s in raw) else None
+    if cols is not None:
+        elev = np.concatenate([elevation_deg(s) for s in raw])
+        pos = np.concatenate([cols[np.arange(len(s)) % len(cols)] for s in raw]).astype(np.int64)
+        ok = np.concatenate([np.einsum("ij,ij->i", s, s) > 1e-6 for s in raw])
+        med = _group_medians(elev[ok], pos[ok], len(cols))
+        return BeamModel(med, max_range=max_range, source="column order", column_rings=cols)
     elev = np.concatenate([elevation_deg(s) for s in scans])
     return BeamModel(_histogram_beams(elev), layout=False, max_range=max_range)
 
@@ -412,9 +521,12 @@ def estimate_beams(scans: list[np.ndarray]) -> BeamModel:
 
 
 @njit(cache=True)
-def _forward_kernel(az: np.ndarray, max_back: float) -> tuple[np.ndarray, float, bool]:
-    """(u, sign, ok) of ``_forward_azimuth`` from the (N >= 2,) azimuths (rad); ok False
-    where the reference gives None for back steps (more than 5 % step back > 1e-3 rad)."""
+def _forward_kernel(
+    az: np.ndarray, rho: np.ndarray, max_back: float, near_shift: float
+) -> tuple[np.ndarray, float, bool]:
+    """(u, sign, ok) of ``_forward_azimuth`` from the (N >= 2,) azimuths (rad) and
+    horizontal ranges (m); ok False where the reference gives None for back steps (more
+    than 5 % step back > 1e-3 rad)."""
     n = az.size
     m = n - 1
     two_pi = 2.0 * np.pi
@@ -448,7 +560,7 @@ def _forward_kernel(az: np.ndarray, max_back: float) -> tuple[np.ndarray, float,
         s = step[i] * sign
         if s < -1e-3:
             n_back += 1
-        if s < -max_back:
+        if s < -max_back and s < -np.arctan2(near_shift, min(rho[i], rho[i + 1])):
             s += two_pi
         acc += s
         u[i + 1] = acc

@@ -319,3 +319,49 @@ def test_zero_padded_frame_counters_are_frames_not_seconds():
     np.testing.assert_allclose(stamps_from_names(files), [0.0, 0.1, 0.2, 0.4])
     seconds = [Path("1600000000.100.pcd"), Path("1600000000.200.pcd")]
     np.testing.assert_allclose(stamps_from_names(seconds), [1600000000.1, 1600000000.2])
+
+
+def test_folder_of_kitti_bins_directly(tmp_path):
+    """``slam run DIR/velodyne``: the folder of .bin scans itself is a KITTI input; the
+    sequence's times / poses / calib are read from its parent, as for ``slam run DIR``."""
+    rng = np.random.default_rng(1)
+    clouds = [rng.uniform(-20, 20, (50, 4)).astype(np.float32) for _ in range(3)]
+    cam = np.tile(np.eye(4), (3, 1, 1))
+    cam[:, 2, 3] = [0.0, 1.0, 2.0]  # along camera z
+    tr = np.eye(4)
+    tr[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    root = write_kitti(tmp_path / "07", clouds, times=[1.0, 1.1, 1.2], poses=cam, calib=tr)
+    src = open_source(root / "velodyne")
+    assert isinstance(src, KittiSource) and len(src) == 3
+    assert "KITTI .bin folder" in src.description
+    got = list(src)
+    assert [s.stamp for s in got] == pytest.approx([1.0, 1.1, 1.2])
+    np.testing.assert_array_equal(got[1].xyz, clouds[1][:, :3].astype(np.float64))
+    np.testing.assert_allclose(src.ground_truth()[2][:3, 3], [2.0, 0.0, 0.0], atol=1e-9)
+    # a bare folder of scans named by frame counter: 0.1 s apart, no ground truth
+    bare = tmp_path / "scans"
+    bare.mkdir()
+    for i, pts in enumerate(clouds):
+        pts.tofile(bare / f"{i + 10}.bin")
+    src = open_source(bare)
+    assert isinstance(src, KittiSource) and src.ground_truth() is None
+    assert [s.stamp for s in src] == pytest.approx([1.0, 1.1, 1.2])
+    # a times.txt that does not fit the scans is refused with what to do
+    (bare / "times.txt").write_text("0.0\n")
+    with pytest.raises(InputError, match="times.txt line per scan"):
+        open_source(bare)
+
+
+def test_slam_run_on_a_real_velodyne_folder(tmp_path):
+    """``slam run SEQ/velodyne`` on the shared KITTI odometry scans runs (it was refused)
+    and finds the HDL-64E's 64 beams."""
+    import json
+
+    from slam.cli import main
+
+    out = tmp_path / "run"
+    folder = shared_path("kitti_odometry", "05", "velodyne")
+    assert main(["run", str(folder), "--out", str(out), "--max-frames", "3", "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 3 and metrics["skipped_frames"] == 0
+    assert metrics["sensor"].startswith("inferred 64 beams") and "point layout" in metrics["sensor"]

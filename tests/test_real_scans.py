@@ -20,7 +20,7 @@ from slam.config import load_config
 from slam.io.folders import cloud_files, read_cloud
 from slam.plugins import instantiate
 from slam.preprocess.knn import knn
-from slam.sensor import estimate_beams
+from slam.sensor import estimate_beams, layout_rings
 from slam.types import Scan
 
 N_KITTI = 8  # consecutive scans registered (~0.8 m apart at ~8 m/s)
@@ -193,3 +193,92 @@ def test_kitti_scans_through_the_pipeline_are_not_deskewed_twice(tmp_path, conta
     else:
         # measured: residual 0.0448 m, one frame 24 cm off small_gicp
         assert fitness > 0.042, fitness
+
+
+def kitti_odometry_xyz(seq: str, n: int = 10) -> list[np.ndarray]:
+    """(N, 3) xyz of the first n scans of a shared KITTI odometry sequence."""
+    from slam.io.kitti import read_bin
+
+    folder = shared_path("kitti_odometry", seq, "velodyne")
+    return [read_bin(f)[:, :3].astype(np.float64) for f in sorted(folder.glob("*.bin"))[:n]]
+
+
+# The column at azimuth 90 deg (+-0.09) of scan 0 of sequence 04, checked by hand: KITTI
+# stores the beams top down, one azimuth turn each (~1800-2170 points), so the n-th turn of
+# the stored order is ring 63 - n; beams 16 and 2 have no return there, two points share a
+# beam where the column window holds two firings. (stored index, ring)
+KITTI04_COLUMN = (
+    (401, 63), (2216, 62), (3994, 61), (5770, 60), (7610, 59), (9420, 58), (11273, 57),
+    (13088, 56), (14932, 55), (16760, 54), (18602, 53), (20481, 52), (22362, 51),
+    (24297, 50), (26254, 49), (28248, 48), (30236, 47), (32293, 46), (34384, 45),
+    (36504, 44), (38642, 43), (40788, 42), (40789, 42), (42930, 41), (45085, 40),
+    (47241, 39), (47242, 39), (49405, 38), (49406, 38), (51566, 37), (53725, 36),
+    (55887, 35), (58053, 34), (60213, 33), (62381, 32), (64547, 31), (66716, 30),
+    (68886, 29), (71057, 28), (73226, 27), (75394, 26), (77563, 25), (79734, 24),
+    (81901, 23), (84071, 22), (86240, 21), (88313, 20), (90378, 19), (92431, 18),
+    (94493, 17), (98604, 15), (100599, 14), (100600, 14), (102590, 13), (104571, 12),
+    (104572, 12), (106554, 11), (108378, 10), (110165, 9), (111936, 8), (113667, 7),
+    (115284, 6), (116775, 5), (118223, 4), (119634, 3), (119635, 3), (122197, 1),
+    (123437, 0), (123438, 0),
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("seq", ["04", "05"])
+def test_kitti_odometry_bins_have_64_beams(seq):
+    """KITTI odometry .bin scans are stored beam by beam like KITTI-raw, but motion-
+    compensated: near points (1.2-1.9 m, at 10 m/s on 04) step back 6-11 deg in azimuth
+    along the order, which the layout test took for a forward gap of ~350 deg (a new turn),
+    sending 04 to the elevation histogram (77-80 "beams"). Every scan keeps the 64 layout
+    rings, each beam a full turn."""
+    scans = kitti_odometry_xyz(seq)
+    model = estimate_beams(scans[:5])
+    assert model.n_beams == 64 and model.layout and model.source == "point layout"
+    lo, hi = model.fov_deg
+    assert abs(hi - 2.4) < 0.3 and abs(lo + 23.7) < 0.3, model.fov_deg
+    for xyz in scans:
+        ring = model.ring_of(xyz)
+        assert np.array_equal(ring, layout_rings(xyz, model.seam_rad))
+        assert np.bincount(ring, minlength=64).min() > 1000  # measured 1122-1153
+
+
+def test_kitti_odometry_hand_checked_column():
+    scans = kitti_odometry_xyz("04", 5)
+    model = estimate_beams(scans)
+    xyz = scans[0]
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    column = np.flatnonzero(np.abs(az - 90.0) < 0.09)
+    index, ring = np.array(KITTI04_COLUMN).T
+    assert np.array_equal(column, index)
+    assert np.array_equal(model.ring_of(xyz)[column], ring)
+    # nearest-elevation assignment gets 13 of these 69 points wrong (rings 34-44: seen from
+    # the origin a beam's elevation shifts with range, its laser being a few cm off it)
+    elev = np.degrees(np.arctan2(xyz[column, 2], np.hypot(*xyz[column, :2].T)))
+    assert np.sum(model._nearest_beam(elev) != ring) == 13
+
+
+def test_nuscenes_hdl32_column_order_gives_32_beams():
+    """nuScenes stores its HDL-32E keyframes column by column, all 32 beams in every column
+    (34688 = 1084 x 32 points): near returns (the car's own body within 5 m) smear the lower
+    beams' elevations by ~1 deg, and the histogram found 49 "beams"; the column order gives
+    each point its beam exactly."""
+    folder = shared_path("nuscenes_keyframes", "clouds")
+    scans = [read_cloud(folder / f"{i}.pcd", index=i) for i in range(3)]
+    model = estimate_beams([s.xyz for s in scans])
+    assert model.n_beams == 32 and model.source == "column order"
+    assert np.allclose(model.fov_deg, (-30.67, 10.67), atol=0.1)  # the data sheet's
+    assert abs(model.vertical_resolution_deg - 4 / 3) < 0.02
+    ring = model.ring_of(scans[0].xyz)
+    assert np.array_equal(ring[:64], np.tile(np.arange(32), 2))  # bottom up in each column
+    assert np.all(np.bincount(ring) == len(scans[0]) // 32)
+
+
+def test_hilti_pandar_xt32_beams():
+    """The Hilti scans (PandarXT-32, 1 deg apart) are stored in firing order without the
+    missing returns: from the histogram, the 28 beams that see anything, +14.9..-12.1 deg
+    (the lowest four, down to -16 deg, return nothing in these scans)."""
+    folder = shared_path("hilti_indoor", "clouds")
+    scans = [read_cloud(folder / f"{i}.pcd", index=i) for i in range(3)]
+    model = estimate_beams([s.xyz for s in scans])
+    assert model.n_beams == 28 and model.source == "elevation histogram"
+    assert np.allclose(model.fov_deg, (-12.1, 14.9), atol=0.1)
+    assert np.allclose(np.diff(model.elevations_deg), 1.0, atol=0.05)

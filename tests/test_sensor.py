@@ -177,7 +177,8 @@ def test_forward_kernel_equals_numpy_reference() -> None:
     n_layouts = 0
     for xyz in _layout_clouds():
         ref = _forward_azimuth(xyz)
-        got = _forward_from_azimuth(np.arctan2(xyz[:, 1], xyz[:, 0]))
+        polar = np.arctan2(xyz[:, 1], xyz[:, 0]), np.hypot(xyz[:, 0], xyz[:, 1])
+        got = _forward_from_azimuth(*polar)
         assert (ref is None) == (got is None)
         if ref is not None:
             n_layouts += 1
@@ -267,3 +268,40 @@ def test_real_hdl64_layout_holds_on_every_scan(tmp_path) -> None:
         assert np.array_equal(ring, model.ring_of(s.xyz))
         assert np.array_equal(t, model.time_of(s.xyz, 0.1))
         assert np.bincount(ring, minlength=64).min() > 500
+
+
+def test_near_points_stepping_back_keep_the_layout() -> None:
+    """Motion compensation moves a near point's azimuth (KITTI odometry at 10 m/s: 6-11 deg
+    back at 1.2-1.9 m): such a back step is not a ~350 deg forward gap (a new turn)."""
+    xyz, ring = spin(SENSORS["HDL-64E"], 900, "ring", seed=6)
+    glitched = xyz.copy()
+    for k in (5000, 30000, 50000):  # three beams: a point 1.5 m away, 12 deg behind
+        az = np.arctan2(xyz[k - 1, 1], xyz[k - 1, 0]) - np.radians(12.0)
+        el = np.arctan2(xyz[k, 2], np.hypot(xyz[k, 0], xyz[k, 1]))
+        glitched[k] = 1.5 * np.array([np.cos(az), np.sin(az), np.tan(el)])
+    model = estimate_beams([glitched, xyz])
+    assert model.n_beams == 64 and model.layout
+    assert np.array_equal(model.ring_of(glitched), ring)
+    # the same step 12 deg back at 30 m is a forward gap: each such beam's turn splits in two
+    far = glitched.copy()
+    far[[5000, 30000, 50000]] *= 20.0
+    assert int(layout_rings(far, model.seam_rad).max()) + 1 == 67
+
+
+def test_a_sweep_stretched_past_the_seam_keeps_its_beams() -> None:
+    """Motion compensation to the sweep start stretches a moving scan past one turn: the
+    last beam's final near points lie beyond the seam (the simulated HDL-64E at 9 m/s: 251
+    points of the lowest beam, 48 deg past it, read as a 65th beam). They are that beam."""
+    elev = SENSORS["HDL-64E"]
+    xyz, ring = spin(elev, 900, "ring", seed=7)
+    az = np.radians(np.arange(1, 61) * 0.4)  # 60 more points of the last beam, 24 deg on
+    el = np.radians(elev[-1])
+    tail = 5.0 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az])
+    for xyz_, ring_ in ((xyz, ring), (xyz[::-1], ring[::-1])):  # spill after / before
+        order = [xyz_, tail.T] if xyz_ is xyz else [tail.T[::-1], xyz_]
+        cloud = np.concatenate(order)
+        model = estimate_beams([cloud])
+        assert model.n_beams == 64 and model.layout
+        want = np.concatenate([ring_, np.full(60, 63)] if xyz_ is xyz else [np.full(60, 63), ring_])
+        assert np.array_equal(model.ring_of(cloud), want)
+        assert np.array_equal(layout_rings(cloud), want)

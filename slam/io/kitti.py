@@ -1,8 +1,11 @@
 """KITTI odometry sequences: ``velodyne/*.bin`` (float32 x, y, z, reflectance per point).
 
-Optional files next to ``velodyne/``: ``times.txt`` (one stamp in s per scan; otherwise
-0.1 s spacing), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground truth,
-T_cam0start_cam0 as KITTI rows). KITTI gives no ring or per-point time: both are None.
+The path is the sequence folder or the folder of ``.bin`` scans itself (``SEQ/velodyne``,
+or any folder of them). Optional files in the sequence folder (for a bare folder of scans:
+beside them, or in the parent when the folder is named ``velodyne``): ``times.txt`` (one
+stamp in s per scan; otherwise from numeric file names as for .pcd folders, 0.1 s apart
+for frame counters), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground
+truth, T_cam0start_cam0 as KITTI rows). KITTI gives no ring or per-point time: both are None.
 A .bin file that is empty, not a whole number of points or all NaN is yielded as a
 SkippedMessage and reading goes on; one that cannot be opened raises InputError.
 """
@@ -15,17 +18,33 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import InputError
+from slam.io.folders import natural_key, stamps_from_names
 from slam.io.points import assemble_scan
 from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError, checked, skip
 from slam.io.trajectory import read_kitti
 from slam.types import Scan, SkippedMessage
 
-SCAN_PERIOD_S = 0.1
+
+def _has_bins(path: Path) -> bool:
+    return path.is_dir() and any(path.glob("*.bin"))
 
 
 def is_kitti_dir(path: Path) -> bool:
-    """True for a directory holding a ``velodyne/`` folder of ``.bin`` files."""
-    return path.is_dir() and (path / "velodyne").is_dir() and any((path / "velodyne").glob("*.bin"))
+    """True for a directory holding ``.bin`` scans or a ``velodyne/`` folder of them."""
+    return _has_bins(path / "velodyne") or _has_bins(path)
+
+
+def kitti_layout(path: Path) -> tuple[Path, Path]:
+    """(scans folder, sequence folder) of a KITTI path: the sequence folder holds
+    ``velodyne/``, or ``path`` is the folder of .bin scans (its parent is the sequence when
+    it is named ``velodyne`` and the parent holds a times / poses / calib file)."""
+    if _has_bins(path / "velodyne"):
+        return path / "velodyne", path
+    meta = ("times.txt", "poses.txt", "calib.txt")
+    if path.name == "velodyne" and not any((path / m).is_file() for m in meta):
+        if any((path.parent / m).is_file() for m in meta):
+            return path, path.parent
+    return path, path
 
 
 def read_bin(path: str | Path) -> np.ndarray:
@@ -62,21 +81,26 @@ class KittiSource:
     """Scans of a KITTI odometry sequence folder, in file-name order."""
 
     def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        if not is_kitti_dir(self.path):
-            raise InputError(f"{self.path}: not a KITTI sequence (expected velodyne/*.bin inside)")
-        self.files = sorted((self.path / "velodyne").glob("*.bin"))
+        given = Path(path)
+        if not is_kitti_dir(given):
+            raise InputError(
+                f"{given}: not a KITTI sequence (expected velodyne/*.bin or *.bin inside)"
+            )
+        scans_dir, self.path = kitti_layout(given)
+        self.files = sorted(scans_dir.glob("*.bin"), key=natural_key)
         times = self.path / "times.txt"
         if times.is_file():
             self.stamps = np.loadtxt(times, ndmin=1).astype(np.float64)
             if self.stamps.shape[0] != len(self.files):
                 raise InputError(
                     f"{times} has {self.stamps.shape[0]} stamps for {len(self.files)} scans"
+                    f" in {scans_dir}: give the sequence a times.txt line per scan"
                 )
         else:
-            self.stamps = np.arange(len(self.files)) * SCAN_PERIOD_S
+            self.stamps = stamps_from_names(self.files)
         self.topic: str | None = None
-        self.description = f"KITTI sequence {self.path} ({len(self.files)} scans)"
+        what = "KITTI sequence" if scans_dir != given else "KITTI .bin folder"
+        self.description = f"{what} {given} ({len(self.files)} scans)"
         self.notes: list[str] = []  # KITTI has no optional fields to drop
 
     def __len__(self) -> int:

@@ -11,7 +11,8 @@ from slam.types import Scan, SkippedMessage
 
 ACCEPTED = (
     "a ROS1 .bag file, a ROS2 bag folder (metadata.yaml with .db3 or .mcap files), "
-    "an .mcap file, a KITTI sequence folder (velodyne/*.bin), a folder of .pcd/.ply files "
+    "an .mcap file, a KITTI sequence folder (velodyne/*.bin) or a folder of KITTI .bin scans, "
+    "a folder of .pcd/.ply files "
     "or a CARMEN 2D laser log (.clf, .clf.bz2)"
 )
 
