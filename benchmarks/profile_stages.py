@@ -46,7 +46,7 @@ from slam.sim.cache import ensure_sequence  # noqa: E402
 from slam.types import Scan  # noqa: E402
 
 KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_drive"
-DATASETS = ("corridor", "park", "urban-hdl64", "kitti-raw")
+DATASETS = ("corridor", "park", "urban", "urban-hdl64", "urban-os128", "kitti-raw")
 
 
 def load_scans(name: str, frames: int, tmp: Path) -> list[Scan]:

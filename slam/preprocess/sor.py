@@ -48,6 +48,7 @@ from slam.preprocess.sor_kernels import (
 )
 
 SOR_METHODS = ("weighted", "classic")
+SOR_MODES = ("paper", "banded")
 STATS_TRIM = 0.001  # share of the sample's largest d left out of the early-exit radius
 STATS_ROUNDS = 3  # rounds of statistics and re-searched unsafe exits before the exact filter
 
@@ -57,6 +58,13 @@ class SorConfig:
     """Outlier-removal settings. k neighbours, alpha threshold coefficient, delta (eq. 9).
 
     range_adaptive and max_density_ratio only affect the weighted method (see weighted_sor).
+
+    mode: "paper" = one statistic (mu, sigma, d_avg, rho_avg of eqs. (5)-(9)) for the whole
+    scan, as printed; "banded" = the same equations with the statistics of each range band
+    (``band_edges``, m from the sensor; ``banded_sor``), so that the sparse far field of a
+    dense sensor is judged against far points, not against the near field that sets the
+    scan-wide statistic. A band of fewer than band_min_points points joins its inner
+    neighbour (the first band its outer one).
 
     stats_stride / stats_min_points: the opt-in estimated statistics of the weighted method
     (``weighted_sor_estimated``) for scans of at least stats_min_points points with a ring
@@ -76,8 +84,20 @@ class SorConfig:
     max_density_ratio: float = 1.0
     stats_stride: int = 0
     stats_min_points: int = 100000
+    mode: str = "paper"
+    band_edges: tuple[float, ...] = (15.0, 30.0, 50.0)
+    band_min_points: int = 500
 
     def __post_init__(self) -> None:
+        if self.mode not in SOR_MODES:
+            raise ConfigError(f"unknown SOR mode '{self.mode}'; valid: {', '.join(SOR_MODES)}")
+        self.band_edges = tuple(float(e) for e in self.band_edges)
+        if any(e <= 0 for e in self.band_edges) or list(self.band_edges) != sorted(
+            set(self.band_edges)
+        ):
+            raise ConfigError("SOR band_edges must be increasing ranges > 0 (m)")
+        if self.band_min_points < 3:
+            raise ConfigError(f"SOR band_min_points must be >= 3, got {self.band_min_points}")
         if self.method not in SOR_METHODS:
             raise ConfigError(
                 f"unknown SOR method '{self.method}'; valid: {', '.join(SOR_METHODS)}"
@@ -353,6 +373,9 @@ def apply_sor(
         if keep is not None:
             return keep
     dist = None if nbh is None else nbh.dist
+    if cfg.mode == "banded" and len(xyz) > 2:
+        dist = knn_distances(_check_xyz(xyz), cfg.k) if dist is None else dist
+        return banded_sor(xyz, dist, cfg)
     if cfg.method == "classic":
         return classic_sor(xyz, cfg.k, cfg.alpha, dist=dist)
     if cfg.method == "weighted":
@@ -366,6 +389,56 @@ def apply_sor(
             dist=dist,
         )
     raise ConfigError(f"unknown SOR method '{cfg.method}'; valid: {', '.join(SOR_METHODS)}")
+
+
+def range_bands(
+    xyz: np.ndarray, edges: tuple[float, ...], min_points: int
+) -> tuple[np.ndarray, int]:
+    """(N,) band label of each point by its range (m) from the origin (the sensor) and the
+    number of bands; bands below ``min_points`` points are merged into their inner
+    neighbour (the innermost into the next one out), so every band holds >= min_points
+    points unless the whole scan has fewer (then one band)."""
+    r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
+    label = np.searchsorted(np.asarray(edges, dtype=np.float64), r, side="right")
+    counts = np.bincount(label, minlength=len(edges) + 1)
+    keep = [b for b in range(len(counts)) if counts[b]]
+    merged = True
+    while merged and len(keep) > 1:
+        merged = False
+        for j, b in enumerate(keep):
+            if counts[b] < min_points:
+                into = keep[j - 1] if j else keep[1]
+                counts[into] += counts[b]
+                counts[b] = 0
+                label[label == b] = into
+                keep.pop(j)
+                merged = True
+                break
+    remap = np.zeros(len(counts), dtype=np.int64)
+    remap[keep] = np.arange(len(keep))
+    return remap[label], len(keep)
+
+
+def banded_sor(xyz: np.ndarray, dist: np.ndarray, cfg: SorConfig) -> np.ndarray:
+    """Keep-mask of the configured method with its statistics taken per range band
+    (``SorConfig.mode`` "banded"): eqs. (4)-(9) (or the classic mu + alpha sigma) within each
+    band of ``range_bands``. dist: (N, k) ascending neighbour distances (m)."""
+    label, n_bands = range_bands(xyz, cfg.band_edges, cfg.band_min_points)
+    keep = np.ones(len(xyz), dtype=bool)
+    for b in range(n_bands):
+        rows = np.flatnonzero(label == b)
+        if len(rows) <= 2:
+            continue
+        sub = dist[rows]
+        if cfg.method == "classic":
+            d = sub.mean(axis=1)
+            keep[rows] = d <= d.mean() + cfg.alpha * d.std(ddof=1)
+            continue
+        if cfg.range_adaptive:
+            sub = sub / np.maximum(np.linalg.norm(xyz[rows], axis=1), 0.1)[:, None]
+        t = weighted_sor_terms_fast(sub, cfg.alpha, cfg.delta, cfg.max_density_ratio)
+        keep[rows] = t.d <= t.theta
+    return keep
 
 
 def weighted_sor_estimated(nbh: Neighbourhoods, cfg: SorConfig) -> np.ndarray | None:
