@@ -4,6 +4,7 @@ and sensor, next to small_gicp's and KISS-ICP's odometry on the same scans, in t
     .venv/bin/python benchmarks/bench_realtime.py [--quick] [--frames 200]
         [--recipes improved_floam_loop floam ...] [--datasets urban16 corridor ...]
         [--peers small_gicp kiss_icp] [--set frontend.sor.mode=banded]
+        [--before /path/to/other/checkout/.venv/bin/slam]
 
 Datasets: ``urban16`` (16-beam car-speed city drive, ``slam simulate urban``), ``corridor``
 (16-beam indoor), ``urban64`` (simulated HDL-64E, ``--sensor hdl64``), ``kitti-raw`` (the 22
@@ -11,10 +12,13 @@ real KITTI-raw HDL-64E scans in ../shared/data/kitti_raw_drive), ``urban128`` (`
 os128``). Every system runs as its own process (``os.wait4``: wall time, CPU time, peak
 resident memory of that process); the peers read the scans with our reader, so both sides
 pay the same input cost. Columns: frames/s of the whole process, the ratio to small_gicp's
-frames/s in the same run, cores used (CPU time / wall time), peak memory (MiB), the
+frames/s in the same run, cores used (CPU time / wall time), peak memory (MiB; per km of
+path from ``metrics.json`` for ours), the
 front end's own per-frame stage means (``metrics.json`` ``frontend_means``, ms) and CPU ms
 per frame of the pipeline's stages (``stage_cpu_ms_last100``), APE RMSE against ground truth
-when there is one. Timings on a loaded machine are noisy: read the ratio, not the frames/s.
+when there is one. ``--before SLAM``: every recipe also runs with another checkout's
+``slam`` (rows ``recipe (before)``), so before and after are measured in the same run.
+Timings on a loaded machine are noisy: read the ratio, not the frames/s.
 """
 
 from __future__ import annotations
@@ -92,8 +96,10 @@ def prepare(name: str, frames: int, tmp: Path) -> tuple[Path, Path | None, int]:
     return Path(sim.bag), Path(sim.ground_truth), frames
 
 
-def run_ours(recipe: str, bag: Path, gt: Path | None, frames: int, out: Path, sets) -> Run:
-    argv = [str(SLAM), "run", str(bag), "--config", recipe, "--out", str(out), "--quiet"]
+def run_ours(
+    recipe: str, bag: Path, gt: Path | None, frames: int, out: Path, sets, slam: Path = SLAM
+) -> Run:
+    argv = [str(slam), "run", str(bag), "--config", recipe, "--out", str(out), "--quiet"]
     argv += ["--max-frames", str(frames)] + (["--gt", str(gt)] if gt else [])
     for s in sets:
         argv += ["--set", s]
@@ -175,7 +181,7 @@ def run_peer(peer: str, bag: Path, gt: Path | None, frames: int, tmp: Path) -> R
 
 def row(dataset: str, r: Run, ref_fps: float | None) -> str:
     if r.error:
-        return f"| {dataset} | {r.system} | failed: {r.error[:80]} |" + " |" * 8
+        return f"| {dataset} | {r.system} | failed: {r.error[:80]} |" + " |" * 10
     ratio = f"{r.fps / ref_fps:.2f}x" if ref_fps else "-"
     means = r.metrics.get("frontend_means", {})
     stages = " / ".join(f"{means.get(f'{s}_ms', 0.0):.1f}" for s in STAGES)
@@ -185,17 +191,19 @@ def row(dataset: str, r: Run, ref_fps: float | None) -> str:
     counts = r.metrics.get("frontend_counts", {})
     bad = counts.get("rejected", 0) + counts.get("tracking_lost", 0)
     ape = f"{100 * r.ape:.2f}" if r.ape is not None else "-"
+    per_km = r.metrics.get("memory_mb_per_km")
+    per_km = f"{per_km:.0f}" if per_km else "-"
     return (
         f"| {dataset} | {r.system} | {r.frames} | {r.fps:.1f} | {ratio} | {cpu_frame:.0f} | "
-        f"{r.cpu / r.wall:.2f} | {r.peak_mb:.0f} | {fe_cpu} | {stages if means else '-'} | "
-        f"{bad if r.metrics else '-'} | {ape} |"
+        f"{r.cpu / r.wall:.2f} | {r.peak_mb:.0f} | {per_km} | {fe_cpu} | "
+        f"{stages if means else '-'} | {bad if r.metrics else '-'} | {ape} |"
     )
 
 
 HEADER = (
     "| data | system | frames | frames/s | x small_gicp | CPU ms/frame | cores | peak MiB | "
-    "front end CPU ms/frame | sor / features / cov / reg / map ms | rejected+lost | "
-    "APE cm |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    "MiB/km | front end CPU ms/frame | sor / features / cov / reg / map ms | rejected+lost | "
+    "APE cm |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
 
@@ -206,6 +214,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=DATASETS)
     ap.add_argument("--peers", nargs="*", default=list(PEERS), choices=PEERS)
     ap.add_argument("--set", action="append", default=[], help="override for our runs")
+    ap.add_argument("--before", type=Path, help="another checkout's slam, run next to ours")
     ap.add_argument("--quick", action="store_true", help="40 frames, 3 datasets, 2 recipes")
     a = ap.parse_args(argv)
     if a.quick:
@@ -221,11 +230,15 @@ def main(argv: list[str] | None = None) -> None:
             peers = {p: run_peer(p, bag, gt, n, tmp) for p in a.peers}
             ref = peers.get("small_gicp")
             ref_fps = ref.fps if ref is not None and not ref.error else None
+            slams = [("", SLAM)] + ([(" (before)", a.before)] if a.before else [])
             for recipe in a.recipes:
-                if ds == a.datasets[0]:  # numba's cache filled before the timed run
-                    run_ours(recipe, bag, gt, 3, tmp / f"warm-{recipe}", a.set)
-                r = run_ours(recipe, bag, gt, n, tmp / f"{ds}-{recipe}", a.set)
-                print(row(ds, r, ref_fps), flush=True)
+                for tag, slam in slams:
+                    sets = a.set if not tag else []
+                    if ds == a.datasets[0]:  # numba's cache filled before the timed run
+                        run_ours(recipe, bag, gt, 3, tmp / f"warm-{recipe}{tag}", sets, slam)
+                    r = run_ours(recipe, bag, gt, n, tmp / f"{ds}-{recipe}{tag}", sets, slam)
+                    r.system += tag
+                    print(row(ds, r, ref_fps), flush=True)
             for r in peers.values():
                 print(row(ds, r, ref_fps), flush=True)
 
