@@ -20,7 +20,11 @@ stand in for a KD-tree (``GicpTarget(..., tree=map)``). It is exact: it scans th
 shells around a query outwards until the k-th neighbour found is closer than every point
 of the unscanned voxels (or than ``distance_upper_bound``); a query not settled within
 ``MAX_SHELLS`` shells (an isolated point: sparse far returns) goes on over shells of coarse
-cells, opening only the voxels nearer than its current k-th neighbour.
+cells, opening only the voxels nearer than its current k-th neighbour. Batches of at least
+``PARALLEL_QUERIES`` queries (the map update's neighbour queries) are split over
+``LocalMapConfig.threads`` numba threads; every query writes only its own rows, so the
+answers do not depend on the threads or their timing (tests/test_local_map.py,
+tests/test_same_run_twice.py).
 """
 
 from __future__ import annotations
