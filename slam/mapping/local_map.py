@@ -64,13 +64,16 @@ class LocalMapConfig:
     300 frames).
 
     threads: numba threads for query batches of at least ``PARALLEL_QUERIES`` points (the
-    answers do not depend on it); 1 = always serial."""
+    answers do not depend on it); 1 = always serial, the default: with 2 threads on two
+    cores shared by ~20 processes (benchmarks/bench_realtime.py, same run) the front end
+    took 10 % more CPU per frame (idle OpenMP threads spin) and no less wall time; to be
+    measured on a quiet machine, where the second core would otherwise idle."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20
     radius: float = 60.0
     prune_distance: float = 3.0
-    threads: int = 2
+    threads: int = 1
 
     def __post_init__(self) -> None:
         if self.voxel_size <= 0 or self.max_points_per_voxel < 1 or self.radius <= 0:
