@@ -308,3 +308,15 @@ def test_banded_removes_injected_outliers_as_the_paper_filter(seed):
     assert 1.0 - banded[out].mean() >= 1.0 - paper[out].mean() - 0.02
     assert 1.0 - banded[out].mean() >= 0.93
     assert banded[label == SURFACE].mean() >= 0.98 and banded[label == POLE].mean() >= 0.9
+
+
+def test_sor_mode_and_bands_are_checked():
+    for bad in (
+        dict(mode="exact"),
+        dict(band_edges=(30.0, 15.0)),
+        dict(band_edges=(0.0, 15.0)),
+        dict(band_min_points=2),
+    ):
+        with pytest.raises(ConfigError):
+            SorConfig(**bad)
+    assert SorConfig(band_edges=[15, 30]).band_edges == (15.0, 30.0)  # a YAML list
