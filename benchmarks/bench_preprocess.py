@@ -16,10 +16,9 @@ range_image and range_image_kernels modules, written to a temporary package so t
 caches them) against the working tree on the same scans, interleaved; --threads N sets
 numba's threads (CPU time with 1 thread is the unloaded single-core time on a busy machine).
 --steps gives the CPU time of each step of the SOR with rings (range image, window search,
-box search, row gather, statistics) on the same scans. --estimated times the exact weighted
-SOR against its estimated statistics (``SorConfig.stats_stride`` 8), alone and with the exact
-neighbour rows of 10k kept points asked for afterwards (the curvature correction's), with
-the decisions that differ.
+box search, row gather, statistics) on the same scans. --banded times the paper's SOR
+(one statistic per scan) against ``SorConfig(mode="banded")`` (per range band) on the same
+scans, with the share of points each removes per range band.
 """
 
 from __future__ import annotations
@@ -301,43 +300,33 @@ def scan_rows(repeat: int) -> None:
         )
 
 
-def scan_rows_estimated(repeat: int, stride: int = 8, rows: int = 10000) -> None:
-    """The exact weighted SOR against the estimated statistics (``SorConfig.stats_stride``)
-    on the same scans, interleaved, min of repeat: the filter alone, and the filter plus the
-    exact rows of ``rows`` kept points (what the curvature correction asks for afterwards,
-    completed on demand in the estimated mode); decisions flipped and points that stopped."""
-    exact = sor_mod.SorConfig()
-    est = sor_mod.SorConfig(stats_stride=stride, stats_min_points=0)
+def scan_rows_banded(repeat: int) -> None:
+    """The paper's SOR against the banded statistics on the same scans, interleaved, min of
+    repeat (wall / CPU ms per scan), and the share of points removed at 0-15, 15-30, 30-50
+    and beyond 50 m by each."""
+    cfgs = {"paper": sor_mod.SorConfig(), "banded": sor_mod.SorConfig(mode="banded")}
     print(f"load average {os.getloadavg()[0]:.2f}; min of {repeat}, ms per scan (wall / CPU)")
-    print(
-        f"  {'scan':20s} {'points':>7s} {'SOR exact':>15s} {'SOR est':>15s} {'+rows exact':>15s}"
-        f" {'+rows est':>15s} {'flips':>6s} {'stopped':>8s}"
-    )
+    bands = ((0, 15), (15, 30), (30, 50), (50, np.inf))
     for name, xyz, ring in real_scans():
-        ref = sor_mod.apply_sor(xyz, exact, sor_mod.neighbourhoods(xyz, exact.k, ring=ring))
-        q = np.flatnonzero(ref)[:: max(len(xyz) // rows, 1)]
-
-        def run(cfg, with_rows, x=xyz, r=ring, q=q):
-            nbh = sor_mod.neighbourhoods(x, cfg.k, ring=r)
-            keep = sor_mod.apply_sor(x, cfg, nbh)
-            if with_rows:
-                nbh.idx[q, : cfg.k]
-            return keep, nbh
-
+        fns = {
+            m: (lambda c=c, x=xyz, g=ring: sor_mod.apply_sor(x, c, ring=g)) for m, c in cfgs.items()
+        }
         res = timed_pair(
-            {
-                "exact": lambda: run(exact, False),
-                "est": lambda: run(est, False),
-                "exact_rows": lambda: run(exact, True),
-                "est_rows": lambda: run(est, True),
-            },
+            fns,
             repeat,
             stat=min,
         )
-        keep, nbh = run(est, False)
-        stopped = 0.0 if nbh._inexact is None else float(nbh._inexact.mean())
-        cells = " ".join(f"{w:7.1f}/{c:7.1f}" for w, c in res.values())
-        print(f"  {name:20s} {len(xyz):7d} {cells} {int((keep != ref).sum()):6d} {stopped:8.3f}")
+        r = np.linalg.norm(xyz, axis=1)
+        for m, cfg in cfgs.items():
+            keep = sor_mod.apply_sor(xyz, cfg, ring=ring)
+            removed = " ".join(
+                f"{1 - keep[(r >= lo) & (r < hi)].mean():.3f}"
+                if np.any((r >= lo) & (r < hi))
+                else "  -  "
+                for lo, hi in bands
+            )
+            w, c = res[m]
+            print(f"  {name:20s} {len(xyz):7d} {m:7s} {w:7.1f}/{c:7.1f}  removed {removed}")
 
 
 def scan_steps(repeat: int) -> None:
@@ -399,9 +388,7 @@ def main() -> None:
     ap.add_argument("--scans", action="store_true", help="SOR old vs new on 16/64-beam scans")
     ap.add_argument("--threads", type=int, help="numba threads (default: numba's)")
     ap.add_argument("--steps", action="store_true", help="CPU ms per step of SOR with rings")
-    ap.add_argument(
-        "--estimated", action="store_true", help="exact vs estimated SOR statistics per scan"
-    )
+    ap.add_argument("--banded", action="store_true", help="paper vs banded SOR per scan")
     args = ap.parse_args()
     if args.threads:
         import numba
@@ -410,8 +397,8 @@ def main() -> None:
     if args.steps:
         scan_steps(args.repeat)
         return
-    if args.estimated:
-        scan_rows_estimated(args.repeat)
+    if args.banded:
+        scan_rows_banded(args.repeat)
         return
     if args.scans and args.before:
         scan_rows_before(args.before, args.repeat)

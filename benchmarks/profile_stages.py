@@ -3,7 +3,7 @@ real KITTI-raw scans, next to small_gicp's own odometry measured in the same run
 
     .venv/bin/python benchmarks/profile_stages.py [--frames 150] [--config improved_floam_loop]
         [--datasets corridor park urban-hdl64 kitti-raw] [--markdown] [--cpu]
-        [--set frontend.sor.stats_stride=8] [--variant est8:frontend.sor.stats_stride=8]
+        [--set frontend.sor.mode=banded] [--variant banded:frontend.sor.mode=banded]
 
 Each dataset is run through the whole pipeline (front end, factor plugins, back end) with
 the recipe given. Front-end stages are the front end's own timings (``*_ms`` extras, mean
@@ -46,7 +46,7 @@ from slam.sim.cache import ensure_sequence  # noqa: E402
 from slam.types import Scan  # noqa: E402
 
 KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_drive"
-DATASETS = ("corridor", "park", "urban-hdl64", "kitti-raw")
+DATASETS = ("corridor", "park", "urban", "urban-hdl64", "urban-os128", "kitti-raw")
 
 
 def load_scans(name: str, frames: int, tmp: Path) -> list[Scan]:
@@ -69,7 +69,6 @@ def stage_cpu_clocks() -> tuple[dict[str, float], list]:
     the improved_floam stages; returns (clocks in ms, restore list)."""
     import frontends.improved_floam as IF
     from slam.mapping.local_map import VoxelHashMap
-    from slam.preprocess import sor
 
     clocks: dict[str, float] = {}
     restore = []
@@ -91,7 +90,6 @@ def stage_cpu_clocks() -> tuple[dict[str, float], list]:
     timed(IF, "apply_sor", "cpu sor (k-NN + statistics)")
     timed(IF, "extract_features", "cpu features (LOAM)")
     timed(IF, "kappa_from_neighbours", "cpu curvature kappa")
-    timed(sor._LazyRows, "__getitem__", "cpu SOR rows completed for kappa")
     timed(IF, "gicp_align", "cpu registration")
     timed(IF.ImprovedFloam, "_insert", "cpu map update")
     timed(IF, "estimate_covariances", lambda a, kw: "cpu map eq.(1)" if "neighbours" in kw

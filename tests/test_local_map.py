@@ -240,3 +240,25 @@ def test_shell_offsets_cover_each_shell_once_nearest_first():
     # shell 1: the six faces come before the edges and corners that lie on their far sides
     one = offsets[start[1] : start[2]].tolist()
     assert one.index([1, 0, 0]) < one.index([-1, -1, 0]) and one[0] == [0, 0, 1]
+
+
+def test_parallel_query_equals_the_serial_kernel_bit_for_bit():
+    """Batches of at least PARALLEL_QUERIES run on numba's threads: the same distances and
+    indices as the one-thread kernel (and so as the KD-tree), isolated queries included."""
+    from scipy.spatial import cKDTree
+
+    from slam.mapping import local_map
+
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(-30, 30, (60000, 2)), rng.normal(0, 0.05, 60000)]
+    q = np.concatenate([pts[::10] + rng.normal(0, 0.2, (6000, 3)), rng.uniform(-90, 90, (50, 3))])
+    assert len(q) >= local_map.PARALLEL_QUERIES
+    out = []
+    for threads in (1, 2):
+        m = VoxelHashMap(LocalMapConfig(max_points_per_voxel=20, threads=threads))
+        m.add(pts)
+        out.append(m.query(q, k=10))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    d_ref, _ = cKDTree(m.points).query(q, k=10)
+    np.testing.assert_allclose(out[1][0], d_ref, atol=1e-12)

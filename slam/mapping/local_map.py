@@ -20,13 +20,18 @@ stand in for a KD-tree (``GicpTarget(..., tree=map)``). It is exact: it scans th
 shells around a query outwards until the k-th neighbour found is closer than every point
 of the unscanned voxels (or than ``distance_upper_bound``); a query not settled within
 ``MAX_SHELLS`` shells (an isolated point: sparse far returns) goes on over shells of coarse
-cells, opening only the voxels nearer than its current k-th neighbour.
+cells, opening only the voxels nearer than its current k-th neighbour. Batches of at least
+``PARALLEL_QUERIES`` queries (the map update's neighbour queries) are split over
+``LocalMapConfig.threads`` numba threads; every query writes only its own rows, so the
+answers do not depend on the threads or their timing (tests/test_local_map.py,
+tests/test_same_run_twice.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -39,6 +44,9 @@ MAX_SHELLS = 2  # voxel shells scanned before a query goes on over coarse cells 
 # as a finite distance bound needs, up to MAX_BOUNDED_SHELLS)
 MAX_BOUNDED_SHELLS = 4
 _SHELLS = K.shell_offsets(max(MAX_SHELLS, MAX_BOUNDED_SHELLS))  # voxel visiting order
+PARALLEL_QUERIES = 4000  # batches at least this large run on numba's threads (the map
+# update's neighbour queries: 5-20k per frame on a car drive); smaller ones, e.g. one GICP
+# iteration on a 16-beam indoor scan, stay serial (a parallel region's start-up and barrier)
 COARSE = 8  # voxels per side of a coarse cell (4 m with the default 0.5 m voxels)
 
 
@@ -53,12 +61,19 @@ class LocalMapConfig:
     points that were within ``radius`` at the last pruning stay within ``radius +
     prune_distance``; the scans since the last pruning reach as far as the sensor does
     (cropping them at ``radius`` on insertion cost the park 22 % APE: 2.8 -> 3.4 cm over
-    300 frames)."""
+    300 frames).
+
+    threads: numba threads for query batches of at least ``PARALLEL_QUERIES`` points (the
+    answers do not depend on it); 1 = always serial, the default: with 2 threads on two
+    cores shared by ~20 processes (benchmarks/bench_realtime.py, same run) the front end
+    took 10 % more CPU per frame (idle OpenMP threads spin) and no less wall time; to be
+    measured on a quiet machine, where the second core would otherwise idle."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20
     radius: float = 60.0
     prune_distance: float = 3.0
+    threads: int = 1
 
     def __post_init__(self) -> None:
         if self.voxel_size <= 0 or self.max_points_per_voxel < 1 or self.radius <= 0:
@@ -67,6 +82,8 @@ class LocalMapConfig:
             )
         if self.prune_distance < 0:
             raise ConfigError("local map prune_distance must be >= 0")
+        if self.threads < 1:
+            raise ConfigError(f"local map threads must be >= 1, got {self.threads}")
 
 
 def voxel_hash(xyz: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -293,8 +310,9 @@ class VoxelHashMap:
 
         Returns (distances m, indices), shape (N,) for k == 1 else (N, k), ascending;
         neighbours beyond ``distance_upper_bound`` (or missing) are inf / ``len(self)``.
-        ``workers`` is accepted for compatibility (the kernel runs on one thread: on two
-        shared cores the thread start-up of a few thousand queries costs more than it saves).
+        Batches of at least ``PARALLEL_QUERIES`` run on ``cfg.threads`` numba threads (same
+        answers: every query writes only its own rows); smaller ones on one thread, whose
+        start-up would cost more than it saves. ``workers`` is accepted for compatibility.
         """
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
         k = int(k)
@@ -310,7 +328,11 @@ class VoxelHashMap:
             shells = min(max(shells, need), MAX_BOUNDED_SHELLS)
         unresolved = np.zeros(len(x), dtype=np.bool_)
         voxel = float(self.cfg.voxel_size)
-        K.query(
+        parallel = self.cfg.threads > 1 and len(x) >= PARALLEL_QUERIES
+        kernel = K.query_parallel if parallel else K.query
+        if parallel:
+            numba.set_num_threads(min(self.cfg.threads, numba.config.NUMBA_NUM_THREADS))
+        kernel(
             x,
             k,
             max_d2,

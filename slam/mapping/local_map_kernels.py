@@ -15,7 +15,7 @@ queries only use it to stop searching, a superset is exact).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 OFF = 1 << 20  # voxel coordinates are offset by this into [0, 2^21)
 MASK21 = (1 << 21) - 1
@@ -635,6 +635,49 @@ def query(
     ``shell_start``: ``shell_offsets(>= max_shells)``.
     """
     for i in range(len(q)):
+        settled = _query_one(
+            i,
+            q,
+            k,
+            max_d2,
+            voxel,
+            max_shells,
+            offsets,
+            shell_start,
+            tkeys,
+            tvals,
+            vcount,
+            vslots,
+            vpts,
+            state,
+            od,
+            oi,
+        )
+        unresolved[i] = not settled
+
+
+@njit(cache=True, parallel=True)
+def query_parallel(
+    q,
+    k,
+    max_d2,
+    voxel,
+    max_shells,
+    offsets,
+    shell_start,
+    tkeys,
+    tvals,
+    vcount,
+    vslots,
+    vpts,
+    state,
+    od,
+    oi,
+    unresolved,
+):
+    """``query`` with the queries split over numba's threads: each query reads the map and
+    writes its own rows only, so the answers equal the serial kernel's bit for bit."""
+    for i in prange(len(q)):
         settled = _query_one(
             i,
             q,

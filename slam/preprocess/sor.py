@@ -4,33 +4,14 @@ density-adaptive variant (improved FLOAM, paper 000, section 2.3, eqs. (4)-(9)).
 Both return a boolean keep-mask over the input points, so callers can filter every
 per-point field of a scan (``scan.select(mask)``).
 
-Exactness and its price (issue 12, measured on one scan each of the simulated urban HDL-64
-and the real KITTI-raw HDL-64E, one thread, CPU ms): the statistics mu, sigma (eqs. (8),
-(9)), d_avg (5) and rho_avg are sums over every point's k-NN distances, so the exact filter
-needs the exact k-NN of every raw point; nothing cheaper decides it exactly. Estimating them
-from a plain sample fails: sigma is set by a few isolated points (KITTI-raw: 0.111 m for the
-scan, 0.063 m from every 4th point, 2.6 % of the decisions flipped; corridor: every 16th
-point gave sigma 0.005 against 0.036). ``weighted_sor_estimated`` (opt-in,
-``SorConfig.stats_stride``) therefore searches the sparse points in full and lets only the
-points that are certain to be kept stop early (``safe_keep_radius``): stride 8 flips 0-3 of
-117-133k decisions (urban HDL-64 APE over 100 frames 4.97 -> 4.88 cm, OS-128 3.83 -> 3.84 cm,
-KITTI-raw per-frame motion vs small_gicp 0.69 / 1.86 cm mean / max, both unchanged), and
-takes the k-NN + statistics from 67.9 to 56.4 ms (urban) and 88.1 to 67.7 ms (KITTI-raw).
-In the pipeline the curvature correction then asks for the exact rows of ~10k features, and
-completing the stopped ones costs a fresh window search each (~1 us per row, 2 ms per call):
-CPU per frame, 2 threads, machine under load (15-22 on 2 cores), same run: SOR 111 -> 105
-(urban) and 127 -> 113 ms (KITTI-raw), completion +21 / +17 ms, the frame 194 -> 213 /
-209 -> 208 ms; with OMP_WAIT_POLICY=passive (OpenMP's idle threads spinning inflate every
-parallel region's CPU time, small_gicp's 2.5x) on KITTI-raw: SOR 115 -> 91, completion
-+10, the frame 204 -> 182 ms, while wall time per frame grew (two more parallel regions per
-scan, each barrier dear on a loaded machine). Not shown to pay on a quiet machine yet, hence
-off by default. ``benchmarks/bench_preprocess.py --estimated`` (filter plus the exact rows
-of 10k kept points, min of 5, load average 25, CPU ms): 1 thread urban 73.0 -> 68.9,
-KITTI-raw 99.6 -> 86.6; 2 threads 95.4 -> 113.5, 110.7 -> 132.2 (its 3 parallel regions per
-scan against 1); 16-beam scans 10-13 -> 16-19 (stats_min_points keeps them exact).
-Writing no neighbour indices at all (distances only) saved
-3-4 % of the window search (urban, KITTI-raw), less than the second search the curvature's
-rows would then need.
+Exactness: the statistics mu, sigma (eqs. (8), (9)), d_avg (5) and rho_avg are sums over
+every point's k-NN distances, so the filter needs the exact k-NN of every raw point
+(estimating them from a sample failed: sigma is set by a few isolated points; KITTI-raw
+0.111 m for the scan, 0.063 m from every 4th point, 2.6 % of the decisions flipped, and a
+sample with early exits for the certain keeps flipped few decisions but did not pay once
+the curvature correction asked for the exact rows; it was removed). On a dense sensor the
+scan-wide statistic is set by the near field: ``SorConfig.mode`` "banded" takes it per
+range band (``banded_sor``).
 """
 
 from __future__ import annotations
@@ -41,15 +22,10 @@ import numpy as np
 
 from slam.errors import ConfigError, InputError
 from slam.preprocess.knn import knn, self_knn
-from slam.preprocess.sor_kernels import (
-    safe_keep_radius,
-    stratified_sor_kernel,
-    weighted_sor_kernel_simd,
-)
+from slam.preprocess.sor_kernels import weighted_sor_kernel_simd
 
 SOR_METHODS = ("weighted", "classic")
-STATS_TRIM = 0.001  # share of the sample's largest d left out of the early-exit radius
-STATS_ROUNDS = 3  # rounds of statistics and re-searched unsafe exits before the exact filter
+SOR_MODES = ("paper", "banded")
 
 
 @dataclass
@@ -58,13 +34,12 @@ class SorConfig:
 
     range_adaptive and max_density_ratio only affect the weighted method (see weighted_sor).
 
-    stats_stride / stats_min_points: the opt-in estimated statistics of the weighted method
-    (``weighted_sor_estimated``) for scans of at least stats_min_points points with a ring
-    field: one point in stats_stride (of the range-image order) gets its exact k-NN for the
-    statistics of eqs. (5), (8), (9), the others stop their search as soon as they are
-    certain to be kept. 0 = the exact statistics (default; the module doc has the numbers:
-    0-3 decisions of ~120k flipped, no net gain per frame once the curvature's rows are
-    completed).
+    mode: "paper" = one statistic (mu, sigma, d_avg, rho_avg of eqs. (5)-(9)) for the whole
+    scan, as printed; "banded" = the same equations with the statistics of each range band
+    (``band_edges``, m from the sensor; ``banded_sor``), so that the sparse far field of a
+    dense sensor is judged against far points, not against the near field that sets the
+    scan-wide statistic. A band of fewer than band_min_points points joins its inner
+    neighbour (the first band its outer one).
     """
 
     enabled: bool = True
@@ -74,10 +49,20 @@ class SorConfig:
     delta: float = 1e-5
     range_adaptive: bool = False
     max_density_ratio: float = 1.0
-    stats_stride: int = 0
-    stats_min_points: int = 100000
+    mode: str = "paper"
+    band_edges: tuple[float, ...] = (15.0, 30.0, 50.0)
+    band_min_points: int = 500
 
     def __post_init__(self) -> None:
+        if self.mode not in SOR_MODES:
+            raise ConfigError(f"unknown SOR mode '{self.mode}'; valid: {', '.join(SOR_MODES)}")
+        self.band_edges = tuple(float(e) for e in self.band_edges)
+        if any(e <= 0 for e in self.band_edges) or list(self.band_edges) != sorted(
+            set(self.band_edges)
+        ):
+            raise ConfigError("SOR band_edges must be increasing ranges > 0 (m)")
+        if self.band_min_points < 3:
+            raise ConfigError(f"SOR band_min_points must be >= 3, got {self.band_min_points}")
         if self.method not in SOR_METHODS:
             raise ConfigError(
                 f"unknown SOR method '{self.method}'; valid: {', '.join(SOR_METHODS)}"
@@ -86,10 +71,6 @@ class SorConfig:
             raise ConfigError(f"SOR k must be >= 1, got {self.k}")
         if self.alpha < 0 or self.delta < 0 or self.max_density_ratio < 0:
             raise ConfigError("SOR alpha, delta and max_density_ratio must be >= 0")
-        if self.stats_stride < 0 or self.stats_stride == 1 or self.stats_min_points < 0:
-            raise ConfigError(
-                "SOR stats_stride must be 0 (exact statistics) or >= 2, stats_min_points >= 0"
-            )
 
 
 def _check_xyz(xyz: np.ndarray) -> np.ndarray:
@@ -109,11 +90,8 @@ class Neighbourhoods:
     """The one k-NN query SOR makes, kept for reuse (e.g. the curvature correction).
 
     idx: (N, k+1) indices of each point's nearest points, itself first; dist: (N, k)
-    distances (m) to the k nearest other points, ascending. Built by ``neighbourhoods``,
-    the search runs when first needed: ``apply_sor`` may then search with early exits
-    (``SorConfig.stats_stride``), after which ``idx`` completes the rows asked for
-    (``idx[rows, :k]``) with their exact neighbours on demand (``np.asarray(idx)``: all).
-    """
+    distances (m) to the k nearest other points, ascending. Built by ``neighbourhoods``;
+    with rings the range-image search runs when first needed."""
 
     def __init__(
         self,
@@ -126,9 +104,6 @@ class Neighbourhoods:
     ) -> None:
         self._idx, self._dist = idx, dist
         self._xyz, self._k, self._ring = xyz, k, ring
-        self._image = None  # slam.preprocess.range_image.RangeImage of an early-exit search
-        self._res = None  # its RangeImageKnn
-        self._inexact: np.ndarray | None = None  # (N,) rows not yet exact
 
     @property
     def searched(self) -> bool:
@@ -138,63 +113,15 @@ class Neighbourhoods:
         if self._dist is None:
             self._idx, self._dist = self_knn(self._xyz, self._k, ring=self._ring)
 
-    def complete(self, rows: np.ndarray | None = None) -> None:
-        """Make the given rows (all when None) exact k-NN rows."""
-        self._search()
-        if self._inexact is None:
-            return
-        todo = np.flatnonzero(self._inexact) if rows is None else np.asarray(rows).ravel()
-        todo = np.unique(todo[self._inexact[todo]]) if len(todo) else todo
-        if len(todo):
-            left = self._image.exact_rows(self._res, todo)
-            if len(left):  # the box search declined: a KD-tree over the whole scan
-                from slam.preprocess.knn import fallback_tree
-
-                k = self._dist.shape[1]
-                fb_dist, fb_idx = fallback_tree(self._xyz).query(self._xyz[left], k + 1)
-                others = fb_idx != left[:, None]
-                others[others.all(axis=1), -1] = False
-                self._idx[left, 0] = left
-                self._idx[left, 1:] = fb_idx[others].reshape(-1, k)
-                self._dist[left] = fb_dist[others].reshape(-1, k)
-            self._inexact[todo] = False
-        if rows is None or not self._inexact.any():
-            self._inexact = None
-            self._image = self._res = None
-
     @property
-    def idx(self):
+    def idx(self) -> np.ndarray:
         self._search()
-        return self._idx if self._inexact is None else _LazyRows(self)
+        return self._idx
 
     @property
     def dist(self) -> np.ndarray:
-        self.complete()
+        self._search()
         return self._dist
-
-
-class _LazyRows:
-    """``Neighbourhoods.idx`` while some rows are not exact: indexing by rows first
-    completes those rows; ``np.asarray`` completes all."""
-
-    def __init__(self, nbh: Neighbourhoods) -> None:
-        self._nbh = nbh
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self._nbh._idx.shape
-
-    def __len__(self) -> int:
-        return len(self._nbh._idx)
-
-    def __getitem__(self, key):
-        first = key[0] if isinstance(key, tuple) else key
-        self._nbh.complete(np.arange(len(self._nbh._idx))[first])
-        return self._nbh._idx[key]
-
-    def __array__(self, dtype=None, copy=None):
-        self._nbh.complete()
-        return self._nbh._idx if dtype is None else self._nbh._idx.astype(dtype)
 
 
 def neighbourhoods(xyz: np.ndarray, k: int, *, ring: np.ndarray | None = None) -> Neighbourhoods:
@@ -340,19 +267,10 @@ def apply_sor(
         return np.ones(len(xyz), dtype=bool)
     if nbh is None and len(xyz) > 2:
         nbh = neighbourhoods(_check_xyz(xyz), cfg.k, ring=ring)
-    if (
-        cfg.method == "weighted"
-        and cfg.stats_stride
-        and not cfg.range_adaptive
-        and nbh is not None
-        and not nbh.searched
-        and len(xyz) >= max(cfg.stats_min_points, 3)
-    ):
-        _check_xyz(xyz)
-        keep = weighted_sor_estimated(nbh, cfg)
-        if keep is not None:
-            return keep
     dist = None if nbh is None else nbh.dist
+    if cfg.mode == "banded" and len(xyz) > 2:
+        dist = knn_distances(_check_xyz(xyz), cfg.k) if dist is None else dist
+        return banded_sor(xyz, dist, cfg)
     if cfg.method == "classic":
         return classic_sor(xyz, cfg.k, cfg.alpha, dist=dist)
     if cfg.method == "weighted":
@@ -368,64 +286,51 @@ def apply_sor(
     raise ConfigError(f"unknown SOR method '{cfg.method}'; valid: {', '.join(SOR_METHODS)}")
 
 
-def weighted_sor_estimated(nbh: Neighbourhoods, cfg: SorConfig) -> np.ndarray | None:
-    """The weighted SOR keep-mask (eqs. (4)-(9)) with estimated statistics, for the
-    not yet searched range-image neighbourhoods ``nbh``; None where it does not apply (the
-    caller then runs the exact filter on the same ``nbh``).
+def range_bands(
+    xyz: np.ndarray, edges: tuple[float, ...], min_points: int
+) -> tuple[np.ndarray, int]:
+    """(N,) band label of each point by its range (m) from the origin (the sensor) and the
+    number of bands; bands below ``min_points`` points are merged into their inner
+    neighbour (the innermost into the next one out), so every band holds >= min_points
+    points unless the whole scan has fewer (then one band)."""
+    r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
+    label = np.searchsorted(np.asarray(edges, dtype=np.float64), r, side="right")
+    counts = np.bincount(label, minlength=len(edges) + 1)
+    keep = [b for b in range(len(counts)) if counts[b]]
+    merged = True
+    while merged and len(keep) > 1:
+        merged = False
+        for j, b in enumerate(keep):
+            if counts[b] < min_points:
+                into = keep[j - 1] if j else keep[1]
+                counts[into] += counts[b]
+                counts[b] = 0
+                label[label == b] = into
+                keep.pop(j)
+                merged = True
+                break
+    remap = np.zeros(len(counts), dtype=np.int64)
+    remap[keep] = np.arange(len(keep))
+    return remap[label], len(keep)
 
-    One point in ``cfg.stats_stride`` of the range-image order is searched in full first;
-    eq. (7) on their statistics gives a keep radius (``safe_keep_radius``: a point whose
-    k-th distance is below it is kept whatever its exact distances). Every other point
-    stops its search as soon as its k-th distance found is below that radius (kept); the
-    others are searched in full. The statistics are then the exact rows' sums plus, for the
-    points that stopped, the mean of the sampled points of the same stratum (k-th distance
-    below the radius) times their number; the exact rows are decided on them. If the radius
-    is not safe under these statistics, the stopped rows are completed and the exact filter
-    decides (None). The stopped rows of ``nbh.idx`` are completed when asked for."""
-    from slam.preprocess.range_image import range_image_of
 
-    xyz, k, ring = nbh._xyz, nbh._k, nbh._ring
-    n = len(xyz)
-    image = range_image_of(xyz, ring, k)
-    if not image.beams:
-        return None
-    a, dr = cfg.alpha, cfg.max_density_ratio
-    sample = image.order[:: cfg.stats_stride]  # input indices, spread over every ring
-    job = np.zeros(n, dtype=np.int8)
-    job[sample] = 1
-    res = image.knn(k, complete=True, job=job)
-    if not res.complete:
-        return None
-    # the radius from the sample's statistics without its largest d (a few isolated points
-    # in the sample make its sigma 2x the scan's; a radius too small only costs time) and
-    # half its mean density (its mean is the densest points')
-    st = weighted_sor_terms_fast(res.dist[sample], a, cfg.delta, dr)
-    d_s = np.sort(st.d)[: max(int(len(st.d) * (1.0 - STATS_TRIM)), 2)]
-    sigma_s = float(d_s.std(ddof=1)) + cfg.delta
-    radius = safe_keep_radius(float(d_s.mean()), sigma_s, 0.5 * float(st.rho.mean()), k, a, dr)
-    job[:] = 2
-    job[sample] = 0
-    res = image.knn(k, complete=True, job=job, exit_below=radius, into=res)
-    if not res.complete:
-        return None
-    exited = res.exited.copy()
-    nbh._idx, nbh._dist = res.idx, res.dist
-    nbh._image, nbh._res, nbh._inexact = image, res, exited
-    stand_in = np.zeros(n, dtype=bool)
-    stand_in[sample] = res.dist[sample, -1] <= radius
-    for _ in range(STATS_ROUNDS):
-        n_unknown = int(np.count_nonzero(exited))
-        if n_unknown and not stand_in.any():
-            return None
-        d, mu, sigma, rho_avg, theta = stratified_sor_kernel(
-            res.dist, ~exited, stand_in, n_unknown, a, cfg.delta, dr
-        )
-        safe = safe_keep_radius(mu, sigma, rho_avg, k, a, dr)
-        # stopped rows the final statistics do not back (their k-th distance found, an
-        # upper bound of the true one, above the safe radius): searched in full, once more
-        unsafe = np.flatnonzero(exited & (res.dist[:, -1] > safe))
-        if len(unsafe) == 0:
-            return exited | (d <= theta)
-        nbh.complete(unsafe)
-        exited[unsafe] = False
-    return None  # not settled: the exact filter
+def banded_sor(xyz: np.ndarray, dist: np.ndarray, cfg: SorConfig) -> np.ndarray:
+    """Keep-mask of the configured method with its statistics taken per range band
+    (``SorConfig.mode`` "banded"): eqs. (4)-(9) (or the classic mu + alpha sigma) within each
+    band of ``range_bands``. dist: (N, k) ascending neighbour distances (m)."""
+    label, n_bands = range_bands(xyz, cfg.band_edges, cfg.band_min_points)
+    keep = np.ones(len(xyz), dtype=bool)
+    for b in range(n_bands):
+        rows = np.flatnonzero(label == b)
+        if len(rows) <= 2:
+            continue
+        sub = dist[rows]
+        if cfg.method == "classic":
+            d = sub.mean(axis=1)
+            keep[rows] = d <= d.mean() + cfg.alpha * d.std(ddof=1)
+            continue
+        if cfg.range_adaptive:
+            sub = sub / np.maximum(np.linalg.norm(xyz[rows], axis=1), 0.1)[:, None]
+        t = weighted_sor_terms_fast(sub, cfg.alpha, cfg.delta, cfg.max_density_ratio)
+        keep[rows] = t.d <= t.theta
+    return keep
