@@ -105,7 +105,8 @@ class OdometryDiagnostics:
     map_skipped (trusted but not inserted: the sensor had not moved). lost: why the frame is
     on the prediction (rejected, failed, or skipped while tracking); skipped: why the scan
     could not be registered. counts: the front end's own scalars (feature counts, ...).
-    gap_hypotheses: starts tried after a long gap (0: none). ambiguity / ambiguity_axis:
+    gap_hypotheses: starts tried after a long gap (0: none); start_hypotheses: starts
+    tried while no velocity was known (0: none). ambiguity / ambiguity_axis:
     the keyframe slide test's ratio and tested (x, y) axis (sensor frame) when it ran.
     timings_ms: stage name (``*_ms``) -> wall ms.
     """
@@ -125,6 +126,7 @@ class OdometryDiagnostics:
     registration: RegistrationDiagnostics | None = None
     min_info_eigenvalue: float | None = None
     gap_hypotheses: int = 0
+    start_hypotheses: int = 0
     ambiguity: float | None = None
     ambiguity_axis: tuple[float, float] | None = None
     counts: dict[str, float] = field(default_factory=dict)

@@ -39,6 +39,11 @@ class CommonConfig:
     from several points along the extrapolated motion, one every gap_hypothesis_step metres
     within what gap_acceleration (m/s^2) changes over the gap, and keeps the one that
     explains the most of the scan (0 = off).
+    start_max_speed (m/s) / start_speed_step (m/s): while no velocity has been measured
+    (the first registration of a run, until one is trusted), the registration starts from
+    the last pose moved by every speed step up to +-start_max_speed along the sensor's x
+    and y axes over the time since it, and keeps the one that explains the most of the
+    scan: a recording that starts mid-drive is not assumed at rest (0 = off).
     map_min_translation / map_min_rotation_deg: a trusted scan enters the map (and the
     gate's running normal) only once the sensor moved this far (m) or turned this much (deg)
     since the last one that did: a standing sensor's scans resample the same rays and would
@@ -66,6 +71,8 @@ class CommonConfig:
     gap_hypotheses_after: float = 3.0
     gap_hypothesis_step: float = 2.0
     gap_acceleration: float = 3.0
+    start_max_speed: float = 40.0
+    start_speed_step: float = 20.0
     map_min_translation: float = 0.01
     map_min_rotation_deg: float = 0.2
     odometry_ambiguity: OdometryAmbiguityConfig = field(default_factory=OdometryAmbiguityConfig)

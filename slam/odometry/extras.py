@@ -27,6 +27,8 @@ def legacy_extras(
     }
     if d.gap_hypotheses:
         out["gap_hypotheses"] = d.gap_hypotheses
+    if d.start_hypotheses:
+        out["start_hypotheses"] = d.start_hypotheses
     out.update(d.counts)
     if ground_plane is not None:
         out["ground_plane"] = ground_plane

@@ -80,6 +80,28 @@ class MotionModel:
         n = int(min(np.ceil((hi - lo) * reach / max(c.gap_hypothesis_step, 1e-3)), 24)) + 1
         return [self.T_last @ se3_exp(twist * f) for f in np.linspace(lo, hi, n)]
 
+    def start_hypotheses(self, span: float | None) -> list[np.ndarray]:
+        """Initial guesses while no velocity is known: the last pose moved along the
+        sensor's x and y axes by every ``start_speed_step`` up to +-``start_max_speed``
+        (m/s) over ``span`` seconds, at rest first ([] when off or without a span)."""
+        c = self._c
+        if c.start_max_speed <= 0 or c.start_speed_step <= 0 or span is None or span <= 0:
+            return []
+        n = int(np.floor(c.start_max_speed / c.start_speed_step + 1e-9))
+        speeds = c.start_speed_step * np.arange(1, n + 1)
+        steps = [np.zeros(3)]
+        for axis in (0,):
+            for v in np.concatenate([speeds, -speeds]):
+                d = np.zeros(3)
+                d[axis] = v * span
+                steps.append(d)
+        starts = []
+        for d in steps:
+            T = np.eye(4)
+            T[:3, 3] = d
+            starts.append(self.T_last @ T)
+        return starts
+
     def deskew(self, scan: Scan) -> Scan:
         """The scan motion-compensated with the smoothed twist over ``motion_dt`` (as it is
         before any motion is known, without per-point time or ``deskew`` off)."""

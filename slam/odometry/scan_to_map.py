@@ -153,9 +153,13 @@ class ScanToMapFrontend:
         f.timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
         try:
             starts = self.motion.gap_hypotheses(work.stamp)
+            f.diag.gap_hypotheses = len(starts)
+            if not starts and self.gate.n_trusted == 1:  # a map, but no velocity yet
+                since = self.clock.duration(self.gate.trusted_stamp, work.stamp)
+                starts = self.motion.start_hypotheses(since)
+                f.diag.start_hypotheses = len(starts)
             if starts:
                 f.est, T_pred = self._best_of(work, starts, f.timings)
-                f.diag.gap_hypotheses = len(starts)
             else:
                 f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
             f.diag.skipped = f.est.skipped
@@ -212,7 +216,9 @@ class ScanToMapFrontend:
             self.map_policy.inserted(est.pose)
         f.diag.map_skipped = not moved
         min_eig = est.information.min_eigenvalue if est.information is not None else np.nan
-        trusted = self.gate.trust(est.pose, f.stamp, est.result, min_eig, learn=moved)
+        # the normal learns only from registrations the gate could test against a prediction
+        tested = self.gate.n_trusted >= 2
+        trusted = self.gate.trust(est.pose, f.stamp, est.result, min_eig, learn=moved and tested)
         f.diag.reinitialised = trusted.reinitialised
         if trusted.recovered:  # the motion model restarts from the mean over the stretch
             self.motion.restart(trusted.T_rel, trusted.lost_for, trusted.n)
