@@ -363,6 +363,12 @@ class ImprovedFloam(ScanToMapFrontend):
     def _map_size(self) -> int:
         return len(self.map)
 
+    def _scan_state(self) -> int:
+        return self._n_thinned  # the column stride's phase advances once per scan
+
+    def _restore_scan_state(self, state: int) -> None:
+        self._n_thinned = state
+
     def _insert(self, est: Estimate[FeatureCloud], timings: dict) -> None:
         cfg, rc = self.cfg, self.cfg.registration
         fc, T = est.pending, est.pose

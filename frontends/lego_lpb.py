@@ -261,6 +261,12 @@ class LegoLpb(LegoLoam):
         p = self._plane_now
         return None if p is None else np.r_[p.normal, p.d]
 
+    def _scan_state(self):
+        return self._dyn_state  # the dynamics tracker advances once per scan
+
+    def _restore_scan_state(self, state) -> None:
+        self._dyn_state = state
+
     def _ground_plane_odom(self) -> tuple[np.ndarray, float] | None:
         return self._plane_odom if self._plane_now is not None else None
 

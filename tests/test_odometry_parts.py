@@ -148,3 +148,30 @@ def test_legacy_extras_keeps_the_flat_keys():
     assert ex["tracking_lost"] == 0 and ex["degenerate"] is False and ex["n_edges"] == 3
     assert ex["iterations"] == 4 and ex["inliers"] == 90 and ex["ground_plane"][3] == 1.7
     assert list(ex)[-1] == "total_ms" and "skipped" not in ex
+
+
+def test_a_start_hypothesis_replaces_the_prediction_only_when_it_explains_more():
+    from slam.odometry.estimate import Estimate
+    from slam.odometry.search import start_beats
+
+    c = CommonConfig()
+    base = Estimate(pose(0.015), result=result(inliers=537))
+    same = Estimate(pose(0.014), result=result(inliers=539))  # the same minimum again
+    assert not start_beats(same, base, c)
+    elsewhere = Estimate(pose(1.3), result=result(inliers=600))
+    assert start_beats(elsewhere, base, c)
+    assert not start_beats(Estimate(pose(1.3), result=result(inliers=540)), base, c)
+    stuck = Estimate(pose(1.25), result=result(inliers=7032, converged=False))
+    assert start_beats(Estimate(pose(1.3), result=result(inliers=6988)), stuck, c)
+    assert start_beats(same, None, c)  # the prediction's registration failed
+    assert not start_beats(Estimate(pose(1.3), result=result(converged=False)), None, c)
+
+
+def test_start_hypotheses_search_forward_and_backward_up_to_the_speed_cap():
+    m = MotionModel(CommonConfig(start_max_speed=40.0, start_speed_step=20.0), SweepClock())
+    m.T_last = pose(5.0)
+    xs = sorted(T[0, 3] - 5.0 for T in m.start_hypotheses(0.1))
+    assert np.allclose(xs, [-4.0, -2.0, 0.0, 2.0, 4.0])  # rest, +-20, +-40 m/s over 0.1 s
+    assert np.allclose(m.start_hypotheses(0.1)[0], pose(5.0))  # rest first
+    assert m.start_hypotheses(None) == []
+    assert MotionModel(CommonConfig(start_max_speed=0.0), SweepClock()).start_hypotheses(0.1) == []

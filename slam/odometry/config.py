@@ -43,7 +43,10 @@ class CommonConfig:
     (the first registration of a run, until one is trusted), the registration starts from
     the last pose moved by every speed step up to +-start_max_speed along the sensor's x
     and y axes over the time since it, and keeps the one that explains the most of the
-    scan: a recording that starts mid-drive is not assumed at rest (0 = off).
+    scan: a recording that starts mid-drive is not assumed at rest (0 = off). The
+    registration from the prediction stands unless it failed or did not converge, or a
+    hypothesis converged more than start_min_shift (m) away from it with more than
+    start_min_gain (fraction) more correspondences.
     map_min_translation / map_min_rotation_deg: a trusted scan enters the map (and the
     gate's running normal) only once the sensor moved this far (m) or turned this much (deg)
     since the last one that did: a standing sensor's scans resample the same rays and would
@@ -73,6 +76,8 @@ class CommonConfig:
     gap_acceleration: float = 3.0
     start_max_speed: float = 40.0
     start_speed_step: float = 20.0
+    start_min_shift: float = 0.1
+    start_min_gain: float = 0.02
     map_min_translation: float = 0.01
     map_min_rotation_deg: float = 0.2
     odometry_ambiguity: OdometryAmbiguityConfig = field(default_factory=OdometryAmbiguityConfig)

@@ -1,7 +1,8 @@
 """The frame loop of a scan-to-map odometry (``process(scan) -> Odometry``).
 
 Per scan: predict with the constant-velocity motion model, crop and deskew, register
-against the map (from several starts after a long gap; wider while tracking is lost), judge
+against the map (from several starts after a long gap or while no velocity is known;
+wider while tracking is lost), judge
 the registration with the tracking gate, insert a trusted scan into the map once the
 sensor moved, choose keyframes and their information, and update the motion model. An
 implausible or failed registration is replaced by the prediction, is not inserted, and
@@ -27,6 +28,7 @@ from slam.odometry.gate import TrackingGate
 from slam.odometry.keyframes import KeyframeDecision, KeyframePolicy
 from slam.odometry.map_policy import MapInsertPolicy
 from slam.odometry.motion import MotionModel
+from slam.odometry.search import StartSearch
 from slam.registration.gicp import RegistrationError
 from slam.registration.information import information_from_hessian
 from slam.rigid import kept_rigid
@@ -73,6 +75,9 @@ class ScanToMapFrontend:
         self.gate = TrackingGate(common, self.clock)
         self.map_policy = MapInsertPolicy(common)
         self.keyframes = KeyframePolicy(common)
+        self.search = StartSearch(
+            common, self._estimate, self._scan_state, self._restore_scan_state
+        )
 
     # ------------------------------------------------------------------ to implement
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
@@ -154,12 +159,14 @@ class ScanToMapFrontend:
         try:
             starts = self.motion.gap_hypotheses(work.stamp)
             f.diag.gap_hypotheses = len(starts)
-            if not starts and self.gate.n_trusted == 1:  # a map, but no velocity yet
-                since = self.clock.duration(self.gate.trusted_stamp, work.stamp)
-                starts = self.motion.start_hypotheses(since)
-                f.diag.start_hypotheses = len(starts)
             if starts:
-                f.est, T_pred = self._best_of(work, starts, f.timings)
+                f.est, T_pred = self.search.best_after_gap(work, starts, f.timings)
+            elif self.gate.n_trusted == 1:  # a map, but no velocity yet: search the motion
+                since = self.clock.duration(self.gate.trusted_stamp, f.stamp)
+                f.est, T_pred, n = self.search.first_motion(
+                    work, T_pred, self.motion.start_hypotheses(since), f.timings, self.gate.lost
+                )
+                f.diag.start_hypotheses = n
             else:
                 f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
             f.diag.skipped = f.est.skipped
@@ -174,24 +181,13 @@ class ScanToMapFrontend:
         f.filtered = f.est.filtered if has_own else work.xyz
         return T_pred
 
-    def _best_of(
-        self, work: Scan, starts: list[np.ndarray], timings: dict
-    ) -> tuple[Estimate, np.ndarray]:
-        """The registration (wide search) from each start that explains the most of the scan
-        (most correspondences; fitness breaks ties), and its start: along a street the wrong
-        alignments fit tighter but on fewer points."""
-        tried = []
-        for T0 in starts:
-            try:
-                tried.append((self._estimate(work, T0, timings, wide=True), T0))
-            except RegistrationError:
-                continue
-        if not tried:
-            raise RegistrationError("no registration converged from any gap hypothesis")
-        scored = [(e, T0) for e, T0 in tried if e.result is not None]
-        if not scored:
-            return tried[0]
-        return max(scored, key=lambda et: (et[0].result.num_inliers, -et[0].result.rmse))
+    def _scan_state(self) -> object:
+        """What ``_estimate`` changes in the front end per scan (e.g. a dynamics tracker),
+        restored before each further start so that every start sees the same scan."""
+        return None
+
+    def _restore_scan_state(self, state: object) -> None:
+        """Undo ``_estimate``'s per-scan changes back to ``state``."""
 
     def _judge(self, f: _Frame, T_pred: np.ndarray) -> None:
         """The gate's verdict on ``f.est``; a trusted scan enters the map once the sensor
