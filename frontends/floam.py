@@ -9,12 +9,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.features.loam import FeatureConfig, extract_features
 from slam.features.thinning import voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.registration.feature_icp import FeatureIcpConfig, FeatureTarget, feature_icp_align
 from slam.types import Scan
+
+
+@dataclass
+class EdgesAndPlanes:
+    """Sensor-frame edge and plane features (m) of one scan: what the maps receive."""
+
+    edges: np.ndarray
+    planes: np.ndarray
 
 
 def _edge_map() -> LocalMapConfig:
@@ -53,19 +61,19 @@ class Floam(ScanToMapFrontend):
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         cfg = self.cfg
         xyz = scan.xyz
-        extras: dict = {"n_after_sor": int(len(xyz))}
         t = time.perf_counter()
         feats = extract_features(xyz, scan.ring, cfg.features, top_picks=False)
         edges = xyz[feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]]
         planes = xyz[feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]]
-        extras.update(n_edges=int(len(edges)), n_planes=int(len(planes)))
+        counts = {"n_after_sor": int(len(xyz)), "n_edges": int(len(edges))}
+        counts["n_planes"] = int(len(planes))
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
         if len(edges) + len(planes) < 10:
-            extras["skipped"] = f"too few features ({len(edges) + len(planes)})"
-            return Estimate(T_pred, extras=extras)
+            skipped = f"too few features ({len(edges) + len(planes)})"
+            return Estimate(T_pred, skipped=skipped, counts=counts)
 
         t = time.perf_counter()
-        est = Estimate(T_pred, extras=extras)
+        est = Estimate(T_pred, pending=EdgesAndPlanes(edges, planes), counts=counts)
         if len(self.edge_map) + len(self.plane_map) >= 10:
             # KD-trees (cached per map version): FLOAM's bounded k=5 search reaches 1 m, five
             # 0.2 m voxels, where most outdoor edge points have no neighbours, and the voxel
@@ -82,17 +90,15 @@ class Floam(ScanToMapFrontend):
                     plane_threshold=rc.plane_threshold * f,
                 )
                 T0 = feature_icp_align(edges, planes, e_map, p_map, T_pred, coarse).T_target_source
-            res = feature_icp_align(edges, planes, e_map, p_map, T0, rc)
-            est = Estimate.from_registration(res, extras)
-        est.pending = (edges, planes)
+            est.result = feature_icp_align(edges, planes, e_map, p_map, T0, rc)
+            est.pose = est.result.T_target_source
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
     def _map_size(self) -> int:
         return len(self.edge_map) + len(self.plane_map)
 
-    def _insert(self, est: Estimate, timings: dict) -> None:
-        edges, planes = est.pending
-        T = est.pose
-        self.edge_map.add(edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
-        self.plane_map.add(planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+    def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
+        f, T = est.pending, est.pose
+        self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+        self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])

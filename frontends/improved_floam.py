@@ -7,20 +7,60 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from enum import Enum
 
 import numpy as np
 
-from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.errors import ConfigError
 from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.preprocess.column_stride import thin_scan
-from slam.preprocess.sor import SorConfig, apply_sor, neighbourhoods
-from slam.registration.gicp import GicpConfig, GicpTarget, estimate_covariances, gicp_align
+from slam.preprocess.sor import Neighbourhoods, SorConfig, apply_sor, neighbourhoods
+from slam.registration.gicp import (
+    GicpConfig,
+    GicpTarget,
+    RegistrationResult,
+    estimate_covariances,
+    gicp_align,
+)
 from slam.registration.plausibility import PlausibilityConfig
 from slam.types import Scan
+
+
+class CovarianceSource(Enum):
+    """Where a source feature's eq. (1) neighbours come from: the feature set itself, or
+    the whole filtered scan voxel-downsampled to ``covariance_voxel``."""
+
+    FEATURES = "features"
+    SCAN = "scan"
+
+
+class MapCovariance(Enum):
+    """Covariances of new map points: from their k neighbours in the map (eq. (1) on the
+    dense map, refreshed as it fills in), or the source covariances rotated into it."""
+
+    MAP = "map"
+    SCAN = "scan"
+
+
+class MapRefresh(Enum):
+    """Which map covariances are recomputed on insertion: the new points and their map
+    neighbours, or only the new points."""
+
+    NEIGHBOURS = "neighbours"
+    NEW = "new"
+
+
+def _choice(kind: type[Enum], value: str, key: str) -> Enum:
+    """``value`` as a member of ``kind``, or a ConfigError naming ``key`` and the choices."""
+    try:
+        return kind(value)
+    except ValueError:
+        names = " or ".join(repr(m.value) for m in kind)
+        raise ConfigError(f"{key} must be {names}, got {value!r}") from None
 
 
 def _improved_features() -> FeatureConfig:
@@ -113,12 +153,7 @@ class ImprovedFloamConfig(CommonConfig):
     min_ring_columns: int = 1024
 
     def __post_init__(self) -> None:
-        if self.covariance_source not in ("scan", "features"):
-            raise ConfigError("covariance_source must be 'scan' or 'features'")
-        if self.map_covariance not in ("map", "scan"):
-            raise ConfigError("map_covariance must be 'map' or 'scan'")
-        if self.map_refresh not in ("neighbours", "new"):
-            raise ConfigError("map_refresh must be 'neighbours' or 'new'")
+        self.strategies()  # the choices are checked here, at load
         if self.max_registration_points < 0:
             raise ConfigError("max_registration_points must be >= 0 (0 = no cap)")
         if self.max_scan_points < 0 or self.min_ring_columns < 0:
@@ -126,6 +161,57 @@ class ImprovedFloamConfig(CommonConfig):
                 "max_scan_points and min_ring_columns must be >= 0 (0 = no column stride / "
                 "no floor on the columns kept)"
             )
+
+    def strategies(self) -> tuple[CovarianceSource, MapCovariance, MapRefresh]:
+        """The three strategy choices (kept as strings in the recipe) as enums."""
+        return (
+            _choice(CovarianceSource, self.covariance_source, "covariance_source"),
+            _choice(MapCovariance, self.map_covariance, "map_covariance"),
+            _choice(MapRefresh, self.map_refresh, "map_refresh"),
+        )
+
+
+@dataclass
+class Filtered:
+    """A scan after the column stride and SOR. raw: the points SOR judged (after the
+    stride), with their neighbourhoods ``nbh`` (None: SOR off) and the kept mask ``keep``;
+    xyz / rings: the kept points and their rings (None: the driver gave none); stride: the
+    column stride applied (None: the scan was not dense enough to try)."""
+
+    raw: np.ndarray
+    keep: np.ndarray
+    nbh: Neighbourhoods | None
+    xyz: np.ndarray
+    rings: np.ndarray | None
+    stride: int | None
+
+
+@dataclass
+class FeatureCloud:
+    """Sensor-frame features (m) with their eq. (1) covariances: what the map receives.
+    covs: of ``points[rows]`` (rows None: of every point); registered: the indices of the
+    points registered (None: all)."""
+
+    points: np.ndarray
+    covs: np.ndarray
+    rows: np.ndarray | None = None
+    registered: np.ndarray | None = None
+
+    def registration_source(self) -> tuple[np.ndarray, np.ndarray]:
+        """The registered points and their covariances."""
+        if self.registered is None:
+            return self.points, self.covs
+        covs = self.covs if self.rows is not None else self.covs[self.registered]
+        return self.points[self.registered], covs
+
+    def all_covs(self, sigma: float) -> np.ndarray:
+        """(N, 3, 3) covariances of every point; isotropic ``sigma`` (m) where none was
+        computed."""
+        if self.rows is None:
+            return self.covs
+        out = np.tile(np.eye(3) * sigma**2, (len(self.points), 1, 1))
+        out[self.rows] = self.covs
+        return out
 
 
 class ImprovedFloam(ScanToMapFrontend):
@@ -137,83 +223,105 @@ class ImprovedFloam(ScanToMapFrontend):
         self.cfg = cfg or ImprovedFloamConfig()
         super().__init__(self.cfg)
         self.map = VoxelHashMap(self.cfg.map, with_covariances=True)
+        self._cov_source, self._map_cov, self._refresh = self.cfg.strategies()
         # features are picked without kappa; the correction runs on the downsampled features
         self._features_no_kappa = replace(self.cfg.features, use_covariance_curvature=False)
         self._n_thinned = 0  # scans thinned by the column stride so far (its phase)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
+        flt = self._filter(scan, timings)
+        counts: dict = {"n_after_sor": int(len(flt.xyz))}
+        if flt.stride is not None:
+            counts.update(column_stride=flt.stride, n_after_stride=int(len(flt.raw)))
+        est = Estimate(T_pred, filtered=flt.xyz, counts=counts)
+
+        t = time.perf_counter()
+        rings, fc = flt.rings, self.cfg.features
+        if rings is None:  # a driver without a ring field: inferred once for both users
+            rings = ring_from_elevation(flt.xyz, fc.n_beams, fc.fov_deg)
+        rings = np.asarray(rings)
+        e_idx, p_idx = self._feature_indices(flt, rings)
+        counts.update(n_edges=int(len(e_idx)), n_planes=int(len(p_idx)))
+        timings["features_ms"] = (time.perf_counter() - t) * 1e3
+        if len(e_idx) + len(p_idx) < 10:
+            est.skipped = f"too few features ({len(e_idx) + len(p_idx)})"
+            return est
+
+        t = time.perf_counter()
+        est.pending = self._feature_cloud(flt.xyz, rings, e_idx, p_idx)
+        src, covs = est.pending.registration_source()
+        counts["n_registered"] = int(len(src))
+        timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        if len(self.map) >= 10:
+            est.result = self._align(src, covs, T_pred, wide)
+            est.pose = est.result.T_target_source
+        timings["registration_ms"] = (time.perf_counter() - t) * 1e3
+        return est
+
+    def _filter(self, scan: Scan, timings: dict) -> Filtered:
+        """The column stride of a scan denser than the paper's sensor (one point per
+        ``stride`` columns per ring), then the paper's SOR."""
         cfg = self.cfg
-        raw, raw_ring = scan.xyz, scan.ring
-        n_scan, stride = len(raw), 1
-        if cfg.max_scan_points and n_scan > cfg.max_scan_points:
-            # a scan denser than the paper's sensor: one point per `stride` columns per ring
+        raw, ring, stride = scan.xyz, scan.ring, None
+        if cfg.max_scan_points and len(raw) > cfg.max_scan_points:
             t = time.perf_counter()
-            if raw_ring is None:
-                raw_ring = ring_from_elevation(raw, cfg.features.n_beams, cfg.features.fov_deg)
+            if ring is None:
+                ring = ring_from_elevation(raw, cfg.features.n_beams, cfg.features.fov_deg)
             kept, stride = thin_scan(
-                raw, raw_ring, cfg.max_scan_points, cfg.min_ring_columns, self._n_thinned
+                raw, ring, cfg.max_scan_points, cfg.min_ring_columns, self._n_thinned
             )
             self._n_thinned += 1
             if kept is not None:
-                raw, raw_ring = raw[kept], np.asarray(raw_ring)[kept]
+                raw, ring = raw[kept], np.asarray(ring)[kept]
             timings["stride_ms"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
         # with the scan's rings: the exact range-image k-NN (same neighbours as a KD-tree)
-        nbh = neighbourhoods(raw, cfg.sor.k, ring=raw_ring) if cfg.sor.enabled else None
+        nbh = neighbourhoods(raw, cfg.sor.k, ring=ring) if cfg.sor.enabled else None
         keep = apply_sor(raw, cfg.sor, nbh)
         # only what the features need (the scan is deskewed already: no time, no intensity)
-        xyz, rings = raw, raw_ring
+        xyz, rings = raw, ring
         if not keep.all():
             xyz = raw[keep]
             rings = None if rings is None else rings[keep]
         timings["sor_ms"] = (time.perf_counter() - t) * 1e3
-        extras: dict = {"n_after_sor": int(len(xyz)), "_filtered_xyz": xyz}
-        if n_scan > cfg.max_scan_points > 0:
-            extras.update(column_stride=stride, n_after_stride=int(len(raw)))
+        return Filtered(raw, keep, nbh, xyz, rings, stride)
 
-        t = time.perf_counter()
-        if rings is None:  # a driver without a ring field: inferred once for both users
-            rings = ring_from_elevation(xyz, cfg.features.n_beams, cfg.features.fov_deg)
-        rings = np.asarray(rings)
-        feats = extract_features(
-            xyz,
-            rings,
-            self._features_no_kappa,
-            top_picks=False,
-        )
-        # thinned in place (no gathered copies): the points voxel_downsample would keep
+    def _feature_indices(self, flt: Filtered, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Edge and plane indices into ``flt.xyz``: LOAM features voxel-thinned in place, then
+        the curvature correction (paper 000, kappa = tr/||.||_F) on the features kept."""
+        cfg, fc, xyz = self.cfg, self.cfg.features, flt.xyz
+        feats = extract_features(xyz, rings, self._features_no_kappa, top_picks=False)
         e_idx = feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]
         p_idx = feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]
-        if cfg.features.use_covariance_curvature and len(e_idx) + len(p_idx) > 0:
-            # curvature correction (paper 000, kappa = tr/||.||_F) on the features actually
-            # used: one k-NN query of a few thousand points instead of the whole scan
-            q = np.concatenate([e_idx, p_idx])
-            k_cov = cfg.features.cov_k
-            if nbh is not None and nbh.idx.shape[1] >= min(k_cov, len(raw)):
-                # the neighbourhoods SOR searched (raw cloud, self + k): no second k-NN
-                q_raw = np.flatnonzero(keep)[q]
-                kappa = kappa_from_neighbours(raw, q_raw, nbh.idx[q_raw, :k_cov])
-            else:
-                kappa = covariance_curvature(xyz, k_cov, query_idx=q)
-            n_e = len(e_idx)
-            e_idx = e_idx[~(kappa[:n_e] > cfg.features.kappa_edge_max)]
-            p_idx = p_idx[~(kappa[n_e:] > cfg.features.kappa_plane_max)]
-        src = np.concatenate([xyz[e_idx], xyz[p_idx]])
-        extras.update(n_edges=int(len(e_idx)), n_planes=int(len(p_idx)))
-        timings["features_ms"] = (time.perf_counter() - t) * 1e3
-        if len(src) < 10:
-            extras["skipped"] = f"too few features ({len(src)})"
-            return Estimate(T_pred, extras=extras)
-
-        t = time.perf_counter()
-        rc = cfg.registration
-        src_idx = np.concatenate([e_idx, p_idx])
-        if cfg.covariance_source == "scan":
-            ref_idx = np.concatenate([voxel_thin(xyz, cfg.covariance_voxel), src_idx])
+        if not fc.use_covariance_curvature or len(e_idx) + len(p_idx) == 0:
+            return e_idx, p_idx
+        q = np.concatenate([e_idx, p_idx])
+        nbh = flt.nbh
+        if nbh is not None and nbh.idx.shape[1] >= min(fc.cov_k, len(flt.raw)):
+            # the neighbourhoods SOR searched (raw cloud, self + k): no second k-NN
+            q_raw = np.flatnonzero(flt.keep)[q]
+            kappa = kappa_from_neighbours(flt.raw, q_raw, nbh.idx[q_raw, : fc.cov_k])
         else:
-            ref_idx = src_idx
-        # registration on at most max_registration_points of the features (density-aware
-        # cap); the map still receives them all
+            kappa = covariance_curvature(xyz, fc.cov_k, query_idx=q)
+        n_e = len(e_idx)
+        e_idx = e_idx[~(kappa[:n_e] > fc.kappa_edge_max)]
+        p_idx = p_idx[~(kappa[n_e:] > fc.kappa_plane_max)]
+        return e_idx, p_idx
+
+    def _feature_cloud(
+        self, xyz: np.ndarray, rings: np.ndarray, e_idx: np.ndarray, p_idx: np.ndarray
+    ) -> FeatureCloud:
+        """The features with their covariances (eq. (1), ring-aware supports) and, above
+        ``max_registration_points``, the density-aware subset that is registered; with map
+        covariances from the map only the registered points need theirs."""
+        cfg, rc = self.cfg, self.cfg.registration
+        src = np.concatenate([xyz[e_idx], xyz[p_idx]])
+        src_idx = np.concatenate([e_idx, p_idx])
+        ref_idx = src_idx
+        if self._cov_source is CovarianceSource.SCAN:
+            ref_idx = np.concatenate([voxel_thin(xyz, cfg.covariance_voxel), src_idx])
         reg = None
         if cfg.max_registration_points and len(src) > cfg.max_registration_points:
             n_e = len(e_idx)
@@ -223,92 +331,90 @@ class ImprovedFloam(ScanToMapFrontend):
                 cfg.max_registration_points,
             )
             reg = np.concatenate([keep_e, n_e + keep_p])
-        # "map": the map recomputes the covariances of what it receives, so only the
-        # registered points need theirs; "scan": the map keeps the source covariances
-        only_reg = reg is not None and cfg.map_covariance == "map"
+        rows = reg if self._map_cov is MapCovariance.MAP else None
         covs = estimate_covariances(
             xyz[ref_idx],
             rc.k_covariance,
             rc.lambda_reg,
             rc.covariance_mode,
-            query=src[reg] if only_reg else src,
+            query=src if rows is None else src[rows],
             plane_epsilon=rc.plane_epsilon,
             line_ratio=rc.line_ratio,
             labels=rings[ref_idx],
             span_distance=rc.span_distance,
             threads=rc.threads,
         )
-        if reg is None:
-            src_reg, covs_reg, covs_map = src, covs, covs
-        elif only_reg:
-            src_reg, covs_reg = src[reg], covs
-            # placeholders for the unregistered points: replaced by the map's eq. (1)
-            covs_map = np.tile(np.eye(3) * cfg.plane_voxel**2, (len(src), 1, 1))
-            covs_map[reg] = covs
-        else:
-            src_reg, covs_reg, covs_map = src[reg], covs[reg], covs
-        extras["n_registered"] = int(len(src_reg))
-        timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
+        return FeatureCloud(src, covs, rows, reg)
 
-        t = time.perf_counter()
-        est = Estimate(T_pred, extras=extras)
-        if len(self.map) >= 10:
-            # the map answers the nearest-neighbour queries through its voxel hash: no KD-tree
-            target = GicpTarget(self.map.points, self.map.covs, tree=self.map)
-            T0 = T_pred
-            if wide:  # tracking lost: coarse pass from the prediction with a wider search
-                d = rc.max_correspondence * cfg.recovery_correspondence_factor
-                coarse = replace(rc, max_correspondence=d)
-                T0 = gicp_align(src_reg, target, T_pred, coarse, source_covs=covs_reg)
-                T0 = T0.T_target_source
-            res = gicp_align(src_reg, target, T0, rc, source_covs=covs_reg)
-            est = Estimate.from_registration(res, extras)
-        est.pending = (src, covs_map)
-        timings["registration_ms"] = (time.perf_counter() - t) * 1e3
-        return est
+    def _align(
+        self, src: np.ndarray, covs: np.ndarray, T_pred: np.ndarray, wide: bool
+    ) -> RegistrationResult:
+        """GICP against the map (its voxel hash answers the neighbour queries) from
+        ``T_pred``; ``wide``: a coarse pass with a wider search first."""
+        rc = self.cfg.registration
+        target = GicpTarget(self.map.points, self.map.covs, tree=self.map)
+        T0 = T_pred
+        if wide:  # tracking lost: coarse pass from the prediction with a wider search
+            d = rc.max_correspondence * self.cfg.recovery_correspondence_factor
+            coarse = replace(rc, max_correspondence=d)
+            T0 = gicp_align(src, target, T_pred, coarse, source_covs=covs).T_target_source
+        return gicp_align(src, target, T0, rc, source_covs=covs)
 
     def _map_size(self) -> int:
         return len(self.map)
 
-    def _insert(self, est: Estimate, timings: dict) -> None:
+    def _scan_state(self) -> int:
+        return self._n_thinned  # the column stride's phase advances once per scan
+
+    def _restore_scan_state(self, state: int) -> None:
+        self._n_thinned = state
+
+    def _insert(self, est: Estimate[FeatureCloud], timings: dict) -> None:
         cfg, rc = self.cfg, self.cfg.registration
-        src, covs = est.pending
-        T = est.pose
+        fc, T = est.pending, est.pose
         R = T[:3, :3]
-        refresh = cfg.map_covariance == "map"
-        if refresh:  # the map computes the new rows' covariances below: no rotated copies
-            rotated = np.broadcast_to(np.eye(3), covs.shape)
+        from_map = self._map_cov is MapCovariance.MAP
+        if from_map:  # the map computes the new rows' covariances below: no rotated copies
+            rotated = np.broadcast_to(np.eye(3), (len(fc.points), 3, 3))
         else:
-            rotated = np.einsum("ij,njk,lk->nil", R, covs, R)
-        n_new = self.map.add(src @ R.T + T[:3, 3], rotated, T[:3, 3])
-        if refresh and n_new and len(self.map) < rc.k_covariance:  # too few points for eq. (1)
+            rotated = np.einsum("ij,njk,lk->nil", R, fc.covs, R)
+        n_new = self.map.add(fc.points @ R.T + T[:3, 3], rotated, T[:3, 3])
+        if not (from_map and n_new):
+            return
+        if len(self.map) < rc.k_covariance:  # too few points for eq. (1): the source's
             acc = self.map.last_accepted
-            self.map.covs[len(self.map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs[acc], R)
-        if cfg.map_covariance == "map" and n_new and len(self.map) >= rc.k_covariance:
-            # eq. (1) on the map: the new points and every map point having one of them among
-            # its k neighbours get their covariance (re)computed from the current map
-            n_old = len(self.map) - n_new
-            new = np.arange(n_old, len(self.map))
-            pts = self.map.points
-            _, nb = self.map.query(pts[new], k=rc.k_covariance)
-            dirty, nb_dirty = new, nb
-            if cfg.map_refresh == "neighbours":
-                # the old points among the new points' neighbours; the new ones (the last
-                # rows) reuse the query above
-                mark = np.zeros(n_old, dtype=bool)
-                mark[nb[nb < n_old]] = True
-                old = np.flatnonzero(mark)  # np.unique(nb[nb < n_old]) without its hash pass
-                _, nb_old = self.map.query(pts[old], k=rc.k_covariance)
-                dirty = np.concatenate([old, new])
-                nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
-            self.map.covs[dirty] = estimate_covariances(
-                pts,
-                rc.k_covariance,
-                rc.lambda_reg,
-                rc.covariance_mode,
-                query=pts[dirty],
-                plane_epsilon=rc.plane_epsilon,
-                line_ratio=rc.line_ratio,
-                threads=rc.threads,
-                neighbours=nb_dirty,
-            )
+            covs = fc.all_covs(cfg.plane_voxel)[acc]
+            self.map.covs[len(self.map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs, R)
+        else:
+            self._refresh_map_covariances(n_new)
+
+    def _refresh_map_covariances(self, n_new: int) -> None:
+        """Eq. (1) on the map: the ``n_new`` newest points and (``map_refresh`` neighbours)
+        every map point having one of them among its k neighbours get their covariance
+        (re)computed from the current map."""
+        rc = self.cfg.registration
+        n_old = len(self.map) - n_new
+        new = np.arange(n_old, len(self.map))
+        pts = self.map.points
+        _, nb = self.map.query(pts[new], k=rc.k_covariance)
+        dirty, nb_dirty = new, nb
+        if self._refresh is MapRefresh.NEIGHBOURS:
+            # the old points among the new points' neighbours; the new ones (the last rows)
+            # reuse the query above
+            mark = np.zeros(n_old, dtype=bool)
+            mark[nb[nb < n_old]] = True
+            old = np.flatnonzero(mark)  # np.unique(nb[nb < n_old]) without its hash pass
+            _, nb_old = self.map.query(pts[old], k=rc.k_covariance)
+            dirty = np.concatenate([old, new])
+            nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
+        self.map.covs[dirty] = estimate_covariances(
+            pts,
+            rc.k_covariance,
+            rc.lambda_reg,
+            rc.covariance_mode,
+            query=pts[dirty],
+            plane_epsilon=rc.plane_epsilon,
+            line_ratio=rc.line_ratio,
+            threads=rc.threads,
+            neighbours=nb_dirty,
+        )

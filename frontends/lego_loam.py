@@ -19,10 +19,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from frontends.common import CommonConfig, Estimate, ScanToMapFrontend
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.range_image_segmentation import Segmentation, SegmentationConfig, segment
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.preprocess.voxel import voxel_downsample
 from slam.registration.feature_icp import FeatureTarget
 from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
@@ -87,6 +87,15 @@ def lego_features(
     )
 
 
+@dataclass
+class EdgesAndPlanes:
+    """Sensor-frame features (m) the maps receive: edges, and the ground and non-ground
+    plane points together (LeGO's surface map)."""
+
+    edges: np.ndarray
+    planes: np.ndarray
+
+
 def _edge_map() -> LocalMapConfig:
     return LocalMapConfig(voxel_size=0.2, max_points_per_voxel=2)
 
@@ -137,8 +146,9 @@ class LegoLoam(ScanToMapFrontend):
             FeatureTarget(self.plane_map.points, self.plane_map.tree()),
         )
 
-    def _features(self, scan: Scan, extras: dict, timings: dict) -> tuple[Scan, LegoFeatures]:
-        """Preprocessing (none in LeGO-LOAM) and features of the cropped, deskewed scan."""
+    def _features(self, scan: Scan, counts: dict, timings: dict) -> tuple[Scan, LegoFeatures]:
+        """Preprocessing (none in LeGO-LOAM) and features of the cropped, deskewed scan;
+        the preprocessing's scalar diagnostics go to ``counts``."""
         t = time.perf_counter()
         ring = self._ring(scan)
         feats = lego_features(scan.xyz, ring, self.cfg.feature_config())
@@ -153,6 +163,10 @@ class LegoLoam(ScanToMapFrontend):
         """The points of the ground residual (LPB), None here."""
         return None
 
+    def _ground_plane(self) -> np.ndarray | None:
+        """This scan's ground plane [nx, ny, nz, d] in the sensor frame (LPB), None here."""
+        return None
+
     # ------------------------------------------------------------------ the frame
     def _ring(self, scan: Scan) -> np.ndarray:
         if scan.ring is not None:
@@ -160,61 +174,63 @@ class LegoLoam(ScanToMapFrontend):
         return ring_from_elevation(scan.xyz, self.cfg.features.n_beams, self.cfg.features.fov_deg)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
-        cfg = self.cfg
-        extras: dict = {}
-        scan, f = self._features(scan, extras, timings)
-        extras.update(
+        counts: dict = {}
+        scan, f = self._features(scan, counts, timings)
+        counts.update(
             n_edges=int(len(f.edges)),
             n_planes=int(len(f.planes) + len(f.ground)),
             n_ground=int(len(f.ground)),
             n_clusters=f.seg.n_clusters,
             n_segmented=int(f.segmented.sum()),
-            _filtered_xyz=scan.xyz[f.segmented],
+        )
+        est = Estimate(
+            T_pred,
+            filtered=scan.xyz[f.segmented],
+            ground_plane=self._ground_plane(),
+            counts=counts,
         )
         if len(f.edges) + len(f.planes) + len(f.ground) < 10:
-            extras["skipped"] = f"too few features ({len(f.edges) + len(f.planes)})"
-            return Estimate(T_pred, extras=extras)
+            est.skipped = f"too few features ({len(f.edges) + len(f.planes)})"
+            return est
         t = time.perf_counter()
-        est = Estimate(T_pred, extras=extras)
+        est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]))
         if len(self.edge_map) + len(self.plane_map) >= 10:
-            e_map, p_map = self._targets()
-            rc = cfg.registration
-            plane = self._ground_plane_odom()
-            g_res = self._ground_residual_points()
-            T0 = T_pred
-            if wide:  # tracking lost: a coarse pass from the prediction with a wider search
-                k = cfg.recovery_correspondence_factor
-                coarse = replace(
-                    rc,
-                    max_neighbor_distance=rc.max_neighbor_distance * k,
-                    plane_threshold=rc.plane_threshold * k,
-                )
-                T0 = two_step_align(
-                    f.ground,
-                    f.edges,
-                    f.planes,
-                    e_map,
-                    p_map,
-                    T_pred,
-                    coarse,
-                    plane,
-                    ground_residual_xyz=g_res,
-                ).T_target_source
-            res = two_step_align(
-                f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane, ground_residual_xyz=g_res
-            )
+            est.result = self._align(f, T_pred, wide)
+            est.pose = est.result.T_target_source
+            rc = self.cfg.registration
             if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
-                extras["remapped_axes"] = len(weak_translation(res.H, rc.degenerate_ratio))
-            est = Estimate.from_registration(res, extras)
-        est.pending = (f.edges, np.concatenate([f.ground, f.planes]))
+                counts["remapped_axes"] = len(weak_translation(est.result.H, rc.degenerate_ratio))
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
+
+    def _align(self, f: LegoFeatures, T_pred: np.ndarray, wide: bool):
+        """Two-step LM and 6-DoF refinement against the maps from ``T_pred`` (a coarse pass
+        with a wider search first when ``wide``)."""
+        cfg = self.cfg
+        e_map, p_map = self._targets()
+        rc = cfg.registration
+        plane = self._ground_plane_odom()
+        g_res = self._ground_residual_points()
+        T0 = T_pred
+        if wide:  # tracking lost: a coarse pass from the prediction with a wider search
+            k = cfg.recovery_correspondence_factor
+            coarse = replace(
+                rc,
+                max_neighbor_distance=rc.max_neighbor_distance * k,
+                plane_threshold=rc.plane_threshold * k,
+            )
+            T0 = two_step_align(
+                f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane,
+                ground_residual_xyz=g_res,
+            ).T_target_source  # fmt: skip
+        return two_step_align(
+            f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane, ground_residual_xyz=g_res
+        )
 
     def _map_size(self) -> int:
         return len(self.edge_map) + len(self.plane_map)
 
-    def _insert(self, est: Estimate, timings: dict) -> None:
-        edges, planes = est.pending
-        T = est.pose
-        self.edge_map.add(edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
-        self.plane_map.add(planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+    def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
+        f, T = est.pending, est.pose
+        self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+        self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])

@@ -12,10 +12,10 @@ of what leaves the window, no rebuild of the whole map).
 
 Every block has ``enabled`` in the config (``outliers``, ``ground``, ``dynamics``,
 ``map``; ``registration.ground_weight: 0`` drops the ground residual), so the paper's
-ablation is a config change. The fitted plane (sensor frame) is published in
-``Odometry.extras["ground_plane"]`` = [nx, ny, nz, d] (n.x + d = 0, d = sensor height, m)
-and as the scalars ``ground_nx``, ``ground_ny``, ``ground_nz``, ``ground_d`` (keyframes keep
-scalar extras only) for the ground factor.
+ablation is a config change. The fitted plane (sensor frame) is published as
+``Odometry.ground_plane`` = [nx, ny, nz, d] (n.x + d = 0, d = sensor height, m), and for
+the ground factor in ``Odometry.extras["ground_plane"]`` and as the scalars ``ground_nx``,
+``ground_ny``, ``ground_nz``, ``ground_d`` (keyframes keep scalar extras only).
 """
 
 from __future__ import annotations
@@ -25,11 +25,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from frontends.lego_loam import LegoFeatures, LegoLoam, LegoLoamConfig, lego_features
+from frontends.lego_loam import (
+    EdgesAndPlanes,
+    LegoFeatures,
+    LegoLoam,
+    LegoLoamConfig,
+    lego_features,
+)
 from slam.errors import ConfigError, InputError
 from slam.features.range_image_segmentation import SegmentationConfig
 from slam.mapping.incremental_map import IncrementalMap, IncrementalMapConfig
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.odometry import Estimate
 from slam.preprocess.dynamics import DynamicsConfig, remove_dynamic
 from slam.preprocess.ground import GroundPlane, RansacGroundConfig, fit_ground, split_ground
 from slam.preprocess.jump_outliers import JumpOutlierConfig, jump_outlier_mask
@@ -169,7 +176,7 @@ class LegoLpb(LegoLoam):
         return len(self.edge_map) + len(self.plane_map)
 
     # ------------------------------------------------------------------ preprocessing
-    def _features(self, scan: Scan, extras: dict, timings: dict) -> tuple[Scan, LegoFeatures]:
+    def _features(self, scan: Scan, counts: dict, timings: dict) -> tuple[Scan, LegoFeatures]:
         cfg = self.cfg
         t = time.perf_counter()
         ring = self._ring(scan)
@@ -177,24 +184,55 @@ class LegoLpb(LegoLoam):
         if cfg.outliers.enabled:
             keep = jump_outlier_mask(scan.xyz, scan.intensity, ring, cfg.outliers)
             scan, ring = scan.select(keep), ring[keep]
-        extras["n_outliers"] = int(n0 - len(scan))
+        counts["n_outliers"] = int(n0 - len(scan))
         timings["outliers_ms"] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
-        ground = None
-        self._plane_now = None
-        self._residual_xyz = None
-        if cfg.ground.enabled:
-            try:
-                self._plane_now = fit_ground(scan.xyz, cfg.ground, seed=self.n_frames)
-                ground = split_ground(scan.xyz, self._plane_now, cfg.ground.band)[0]
-                inl = scan.xyz[self._plane_now.inliers]
-                self._residual_xyz = inl[voxel_downsample(inl, cfg.ground_voxel)]
-            except InputError:  # no level plane in view: LeGO's slope test instead
-                extras["ground_fallback"] = 1
+        ground = self._fit_ground(scan, counts)
         timings["ground_ms"] = (time.perf_counter() - t) * 1e3
 
         t = time.perf_counter()
+        scan, ring, ground = self._remove_dynamic(scan, ring, ground, counts)
+        timings["dynamics_ms"] = (time.perf_counter() - t) * 1e3
+
+        t = time.perf_counter()
+        feats = lego_features(scan.xyz, ring, cfg.feature_config(), ground=ground)
+        timings["features_ms"] = (time.perf_counter() - t) * 1e3
+        if self._plane_now is not None:
+            p = self._plane_now
+            counts.update(
+                ground_nx=float(p.normal[0]),
+                ground_ny=float(p.normal[1]),
+                ground_nz=float(p.normal[2]),
+                ground_d=float(p.d),
+                ground_rmse=float(p.rmse),
+            )
+        return scan, feats
+
+    def _fit_ground(self, scan: Scan, counts: dict) -> np.ndarray | None:
+        """RANSAC ground of the scan (3.1.2): the (N,) ground mask, None for LeGO's slope
+        test (block off, or no level plane in view: ``ground_fallback`` = 1)."""
+        cfg = self.cfg
+        self._plane_now = None
+        self._residual_xyz = None
+        if not cfg.ground.enabled:
+            return None
+        try:
+            self._plane_now = fit_ground(scan.xyz, cfg.ground, seed=self.n_frames)
+        except InputError:
+            counts["ground_fallback"] = 1
+            return None
+        ground = split_ground(scan.xyz, self._plane_now, cfg.ground.band)[0]
+        inl = scan.xyz[self._plane_now.inliers]
+        self._residual_xyz = inl[voxel_downsample(inl, cfg.ground_voxel)]
+        return ground
+
+    def _remove_dynamic(
+        self, scan: Scan, ring: np.ndarray, ground: np.ndarray | None, counts: dict
+    ) -> tuple[Scan, np.ndarray, np.ndarray | None]:
+        """DBSCAN dynamic objects among the non-ground points removed (3.1.3), unless more
+        than ``max_dynamic_fraction`` of the scan is flagged (``dynamic_vetoed`` = 1)."""
+        cfg = self.cfg
         n_dyn = 0
         if cfg.dynamics.enabled:
             g = ground if ground is not None else np.zeros(len(scan), dtype=bool)
@@ -205,8 +243,9 @@ class LegoLpb(LegoLoam):
             )
             drop = ng[~keep_ng]
             n_dyn = len(drop)
-            extras["dynamic_vetoed"] = int(n_dyn > cfg.max_dynamic_fraction * len(scan))
-            if extras["dynamic_vetoed"]:
+            vetoed = n_dyn > cfg.max_dynamic_fraction * len(scan)
+            counts["dynamic_vetoed"] = int(vetoed)
+            if vetoed:
                 n_dyn = 0
             if n_dyn:
                 keep = np.ones(len(scan), dtype=bool)
@@ -215,23 +254,18 @@ class LegoLpb(LegoLoam):
                 ground = None if ground is None else ground[keep]
                 if self._plane_now is not None:
                     self._plane_now.inliers = self._plane_now.inliers[keep]
-        extras["n_dynamic"] = int(n_dyn)
-        timings["dynamics_ms"] = (time.perf_counter() - t) * 1e3
+        counts["n_dynamic"] = int(n_dyn)
+        return scan, ring, ground
 
-        t = time.perf_counter()
-        feats = lego_features(scan.xyz, ring, cfg.feature_config(), ground=ground)
-        timings["features_ms"] = (time.perf_counter() - t) * 1e3
-        if self._plane_now is not None:
-            p = self._plane_now
-            extras["ground_plane"] = np.r_[p.normal, p.d]
-            extras.update(
-                ground_nx=float(p.normal[0]),
-                ground_ny=float(p.normal[1]),
-                ground_nz=float(p.normal[2]),
-                ground_d=float(p.d),
-                ground_rmse=float(p.rmse),
-            )
-        return scan, feats
+    def _ground_plane(self) -> np.ndarray | None:
+        p = self._plane_now
+        return None if p is None else np.r_[p.normal, p.d]
+
+    def _scan_state(self):
+        return self._dyn_state  # the dynamics tracker advances once per scan
+
+    def _restore_scan_state(self, state) -> None:
+        self._dyn_state = state
 
     def _ground_plane_odom(self) -> tuple[np.ndarray, float] | None:
         return self._plane_odom if self._plane_now is not None else None
@@ -239,12 +273,11 @@ class LegoLpb(LegoLoam):
     def _ground_residual_points(self) -> np.ndarray | None:
         return self._residual_xyz
 
-    def _insert(self, est, timings: dict) -> None:
-        edges, planes = est.pending
-        T = est.pose
+    def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
+        f, T = est.pending, est.pose
         if self.cfg.map.enabled:
-            self.edge_map.add(edges @ T[:3, :3].T + T[:3, 3], T[:3, 3])
-            self.plane_map.add(planes @ T[:3, :3].T + T[:3, 3], T[:3, 3])
+            self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], T[:3, 3])
+            self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], T[:3, 3])
         else:
             super()._insert(est, timings)
         if self._plane_now is not None:  # the plane of this trusted frame, for the next one

@@ -169,7 +169,20 @@ def deskew(
     if backend == "numba":
         xyz, time = np.ascontiguousarray(xyz), np.ascontiguousarray(time)
         return _deskew_kernel(xyz, time, float(sweep_period), theta, u, rho, u_rho, uu_rho)
-    s = time / sweep_period
+    return _deskew_numpy(xyz, time / sweep_period, theta, u, rho, u_rho, uu_rho)
+
+
+def _deskew_numpy(
+    xyz: np.ndarray,
+    s: np.ndarray,
+    theta: float,
+    u: np.ndarray,
+    rho: np.ndarray,
+    u_rho: np.ndarray,
+    uu_rho: np.ndarray,
+) -> np.ndarray:
+    """The vectorised reference of ``_deskew_kernel``: points at sweep fractions ``s``
+    moved by exp(s * log T), T a rotation ``theta`` (rad) about the unit axis ``u``."""
     x = s * theta
     c, sn = np.cos(x), np.sin(x)
     small = np.abs(x) < 1e-4

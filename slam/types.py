@@ -10,6 +10,7 @@ Information matrices are 6x6 in GTSAM's tangent ordering: rotation first
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,74 @@ class SkippedMessage:
     detail: str
 
 
+class TrackingStatus(Enum):
+    """How a front end got a frame's pose.
+
+    INITIALISING: nothing usable yet (the origin, no keyframe). TRACKED: a trusted
+    registration (or the scan that starts the map). RECOVERED: the first trusted
+    registration after lost frames. LOST: the registration was rejected as implausible or
+    failed; the pose is the motion model's prediction. PREDICTED: the scan could not be
+    registered (too few points or features); the pose is the prediction.
+    """
+
+    INITIALISING = "initialising"
+    TRACKED = "tracked"
+    RECOVERED = "recovered"
+    LOST = "lost"
+    PREDICTED = "predicted"
+
+
+@dataclass
+class RegistrationDiagnostics:
+    """The scan-to-map registration of one frame: iterations, fitness (RMSE of the inlier
+    correspondences, m), converged, inliers (correspondences) and their ratio to the source
+    points."""
+
+    iterations: int
+    fitness: float
+    converged: bool
+    inliers: int
+    inlier_ratio: float
+
+
+@dataclass
+class OdometryDiagnostics:
+    """The scalars of one frame that a run sums or averages.
+
+    The 0/1 tracking counters are on every frame: rejected (the registration was judged
+    implausible or failed), tracking_lost (the frame is on the prediction while tracking was
+    established), recovered, reinitialised (the gate's running normal restarted),
+    map_skipped (trusted but not inserted: the sensor had not moved). lost: why the frame is
+    on the prediction (rejected, failed, or skipped while tracking); skipped: why the scan
+    could not be registered. counts: the front end's own scalars (feature counts, ...).
+    gap_hypotheses: starts tried after a long gap (0: none); start_hypotheses: starts
+    tried while no velocity was known (0: none). ambiguity / ambiguity_axis:
+    the keyframe slide test's ratio and tested (x, y) axis (sensor frame) when it ran.
+    timings_ms: stage name (``*_ms``) -> wall ms.
+    """
+
+    n_points: int = 0
+    n_after_crop: int = 0
+    map_points: int = 0
+    rejected: bool = False
+    tracking_lost: bool = False
+    recovered: bool = False
+    reinitialised: bool = False
+    map_skipped: bool = False
+    degenerate: bool = False
+    ambiguous: bool = False
+    lost: str | None = None
+    skipped: str | None = None
+    registration: RegistrationDiagnostics | None = None
+    min_info_eigenvalue: float | None = None
+    gap_hypotheses: int = 0
+    start_hypotheses: int = 0
+    ambiguity: float | None = None
+    ambiguity_axis: tuple[float, float] | None = None
+    counts: dict[str, float] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
 @dataclass
 class Odometry:
     """What a front end returns for one scan.
@@ -74,7 +143,12 @@ class Odometry:
     points in the sensor frame after deskew/filtering (voxel-thinned), kept by the pipeline
     for keyframes (float32 is stored as given; other dtypes are converted once); front
     ends may leave it empty on other frames.
-    extras: diagnostics (feature counts, iterations, fitness, degenerate, ...).
+    status: how the pose was obtained (``TrackingStatus``; None for front ends that do not
+    track). diagnostics: typed per-frame scalars (``OdometryDiagnostics``).
+    ground_plane: (4,) [nx, ny, nz, d] of the ground fitted in the sensor frame
+    (n.x + d = 0, d = sensor height, m), or None.
+    extras: the same diagnostics as a flat dict (feature counts, iterations, fitness,
+    degenerate, ...), what the pipeline reads.
     """
 
     stamp: float
@@ -84,6 +158,9 @@ class Odometry:
     info: np.ndarray
     cloud: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
+    status: TrackingStatus | None = None
+    diagnostics: OdometryDiagnostics | None = None
+    ground_plane: np.ndarray | None = None
 
 
 @dataclass

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from test_loop_degeneracy import _corridor, _room, _sensor, _view
 
-from frontends.common import CommonConfig
 from slam.errors import ConfigError
+from slam.odometry import CommonConfig
 from slam.registration.ambiguity import (
     OdometryAmbiguityConfig,
     loosened_information,

@@ -1,0 +1,116 @@
+"""The tracking gate: whether a registration is believable, how long tracking has been
+lost, and when its tolerances relax (``slam.registration.plausibility`` does the tests)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.odometry.clock import SweepClock
+from slam.odometry.config import CommonConfig
+from slam.registration.gicp import RegistrationResult
+from slam.registration.plausibility import RunningNormal, implausibility, relaxed
+
+
+@dataclass
+class Trusted:
+    """What trusting a registration changed. reinitialised: the running normal restarted
+    (accepted with relaxed tolerances). recovered: tracking had been lost; then
+    ``T_rel`` (last trusted pose -> this one), over ``lost_for`` seconds and ``n`` frames."""
+
+    reinitialised: bool = False
+    recovered: bool = False
+    T_rel: np.ndarray | None = None
+    lost_for: float | None = None
+    n: int = 0
+
+
+class TrackingGate:
+    """The running normal of trusted registrations, the last trusted pose and stamp, and
+    the count of consecutive frames without a trusted registration."""
+
+    def __init__(self, cfg: CommonConfig, clock: SweepClock):
+        self._c = cfg
+        self._clock = clock
+        self.normal = RunningNormal(cfg.plausibility.window)
+        self.n_trusted = 0  # trusted poses so far (the first frame included)
+        self.lost_frames = 0
+        self.T_trusted = np.eye(4)
+        self.trusted_stamp: float | None = None
+
+    @property
+    def lost(self) -> bool:
+        """Whether the last frame had no trusted registration (search wider)."""
+        return self.lost_frames > 0
+
+    def judge(
+        self,
+        res: RegistrationResult,
+        min_eigenvalue: float,
+        pose: np.ndarray,
+        T_pred: np.ndarray,
+        stamp: float,
+    ) -> str | None:
+        """Why the registration ``res`` ending at ``pose`` is not believable (None: trust
+        it). The prediction is a measurement only once two trusted poses gave it a velocity."""
+        since = self._clock.duration(self.trusted_stamp, stamp)
+        off_prediction = np.linalg.inv(T_pred) @ pose if self.n_trusted >= 2 else np.eye(4)
+        return implausibility(
+            res,
+            min_eigenvalue,
+            self.normal,
+            np.linalg.inv(self.T_trusted) @ pose,
+            off_prediction,
+            since,
+            relaxed(
+                self._c.plausibility,
+                self.relaxation(since),
+                self.relaxation(since, self._c.fitness_relax_seconds or None),
+            ),
+        )
+
+    def relaxation(self, since: float | None, every: float | None = None) -> float:
+        """Factor (1, 2, 4, ...) by which the relative tolerances are widened: doubled every
+        ``every`` seconds of lost tracking (default ``max_lost_seconds``)."""
+        every = self._c.max_lost_seconds if every is None else every
+        if not self.lost_frames or since is None or every <= 0:
+            return 1.0
+        return float(2.0 ** np.floor(since / every))
+
+    def trust(
+        self,
+        pose: np.ndarray,
+        stamp: float,
+        res: RegistrationResult | None,
+        min_eigenvalue: float,
+        learn: bool,
+    ) -> Trusted:
+        """Book-keeping of a trusted pose: the running normal learns ``res`` when ``learn``
+        (the scan entered the map), a lost stretch ends."""
+        out = Trusted()
+        if res is not None and learn:
+            since = self._clock.duration(self.trusted_stamp, stamp)
+            fit_every = self._c.fitness_relax_seconds or None
+            if max(self.relaxation(since), self.relaxation(since, fit_every)) > 1.0:
+                self.normal.clear()  # lost long enough to accept a changed scene
+                out.reinitialised = True
+            self.normal.add(res, min_eigenvalue)
+        if self.lost_frames > 0 and self.trusted_stamp is not None:
+            out.recovered = True
+            out.n = self.lost_frames + 1
+            out.lost_for = self._clock.duration(self.trusted_stamp, stamp)
+            out.T_rel = np.linalg.inv(self.T_trusted) @ pose
+        self.lost_frames = 0
+        self.T_trusted = pose.copy()
+        self.trusted_stamp = float(stamp)
+        self.n_trusted += 1
+        return out
+
+    def miss(self) -> bool:
+        """A frame without a trusted pose; True when tracking was established (it is lost
+        now), False while the map has not started."""
+        if self.trusted_stamp is None:
+            return False
+        self.lost_frames += 1
+        return True

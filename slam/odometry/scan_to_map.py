@@ -1,0 +1,275 @@
+"""The frame loop of a scan-to-map odometry (``process(scan) -> Odometry``).
+
+Per scan: predict with the constant-velocity motion model, crop and deskew, register
+against the map (from several starts after a long gap or while no velocity is known;
+wider while tracking is lost), judge
+the registration with the tracking gate, insert a trusted scan into the map once the
+sensor moved, choose keyframes and their information, and update the motion model. An
+implausible or failed registration is replaced by the prediction, is not inserted, and
+does not teach the motion model or the gate.
+
+A front end subclasses ``ScanToMapFrontend`` and implements ``_estimate`` (register the
+scan against the map without changing it) and ``_insert`` (add a trusted scan to the map).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.odometry.clock import SweepClock
+from slam.odometry.config import CommonConfig
+from slam.odometry.estimate import Estimate
+from slam.odometry.extras import legacy_extras
+from slam.odometry.gate import TrackingGate
+from slam.odometry.keyframes import KeyframeDecision, KeyframePolicy
+from slam.odometry.map_policy import MapInsertPolicy
+from slam.odometry.motion import MotionModel
+from slam.odometry.search import StartSearch
+from slam.registration.gicp import RegistrationError
+from slam.registration.information import information_from_hessian
+from slam.rigid import kept_rigid
+from slam.types import Odometry, OdometryDiagnostics, Scan, TrackingStatus
+
+log = logging.getLogger(__name__)
+
+
+def crop(scan: Scan, min_range: float, max_range: float) -> Scan:
+    """The finite points between ``min_range`` and ``max_range`` (m), xyz float64."""
+    xyz = np.asarray(scan.xyz, dtype=np.float64).reshape(-1, 3)
+    r2 = np.einsum("ij,ij->i", xyz, xyz)
+    ok = np.isfinite(r2) & (r2 >= min_range**2) & (r2 <= max_range**2)
+    out = scan.select(ok) if not ok.all() else scan
+    out.xyz = np.asarray(out.xyz, dtype=np.float64)
+    return out
+
+
+@dataclass
+class _Frame:
+    """One scan on its way through the loop."""
+
+    index: int
+    stamp: float
+    diag: OdometryDiagnostics
+    est: Estimate | None = None
+    filtered: np.ndarray | None = None
+    ground_plane: np.ndarray | None = None
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Stage name -> wall ms (the diagnostics' own dict)."""
+        return self.diag.timings_ms
+
+
+class ScanToMapFrontend:
+    """Scan-to-map odometry composed of a sweep clock, a motion model, a tracking gate, a
+    map-insert policy and a keyframe policy."""
+
+    def __init__(self, common: CommonConfig):
+        self._c = common
+        self.clock = SweepClock()
+        self.motion = MotionModel(common, self.clock)
+        self.gate = TrackingGate(common, self.clock)
+        self.map_policy = MapInsertPolicy(common)
+        self.keyframes = KeyframePolicy(common)
+        self.search = StartSearch(
+            common, self._estimate, self._scan_state, self._restore_scan_state
+        )
+
+    # ------------------------------------------------------------------ to implement
+    def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
+        """Register ``scan`` against the map from ``T_pred`` without changing the map; ``wide``:
+        tracking is lost, search wider (coarse-to-fine from the prediction)."""
+        raise NotImplementedError
+
+    def _insert(self, est: Estimate, timings: dict) -> None:
+        """Add the trusted scan (``est.pending``) to the map at ``est.pose``."""
+        raise NotImplementedError
+
+    def _map_size(self) -> int:
+        """Points in the local map(s), for diagnostics."""
+        return 0
+
+    # ------------------------------------------------------------------ state by name
+    @property
+    def T_last(self) -> np.ndarray:
+        """T_odom_sensor of the previous frame."""
+        return self.motion.T_last
+
+    @T_last.setter
+    def T_last(self, T: np.ndarray) -> None:
+        self.motion.T_last = T
+
+    @property
+    def T_motion(self) -> np.ndarray:
+        """T_prev_current of the last tracked frame pair (the constant-velocity motion)."""
+        return self.motion.T_motion
+
+    @property
+    def n_frames(self) -> int:
+        """Frames processed so far."""
+        return self.motion.n_frames
+
+    @property
+    def n_keyframes(self) -> int:
+        """Keyframes chosen so far."""
+        return self.keyframes.n_keyframes
+
+    @n_keyframes.setter
+    def n_keyframes(self, n: int) -> None:
+        self.keyframes.n_keyframes = n
+
+    # ------------------------------------------------------------------ the frame loop
+    def process(self, scan: Scan) -> Odometry:
+        """Estimate T_odom_sensor at ``scan.stamp`` (sweep start) and decide on a keyframe."""
+        t0 = time.perf_counter()
+        f = _Frame(scan.index, float(scan.stamp), OdometryDiagnostics(n_points=int(len(scan))))
+        T_pred = self.motion.predict(scan.stamp)
+        work = crop(scan, self._c.min_range, self._c.max_range)
+        f.diag.n_after_crop = int(len(work))
+        T_pred = self._register(work, T_pred, f)
+        if f.est is not None and f.diag.skipped is None:
+            self._judge(f, T_pred)
+        self._close_tracking(f)
+        # chained poses drift off SO(3) by rounding, and the motion model feeds it back
+        pose = kept_rigid(f.est.pose if f.est is not None else T_pred)
+        initialising = self.keyframes.n_keyframes == 0 and f.est is None
+        if initialising:  # nothing usable yet: stay at the origin, no keyframe
+            pose = np.eye(4)
+        kf = self._keyframe(pose, f)
+        if f.est is not None and not f.diag.recovered:
+            self.motion.learn(pose, scan.stamp)
+        self.clock.observe(scan.stamp)
+        self.motion.advance(pose)
+        f.timings["total_ms"] = (time.perf_counter() - t0) * 1e3
+        return self._odometry(f, pose, kf, self._status(f, initialising))
+
+    def _register(self, work: Scan, T_pred: np.ndarray, f: _Frame) -> np.ndarray:
+        """Deskew and register the cropped scan (``f.est``, ``f.filtered``); returns the
+        prediction it started from (the best gap hypothesis after a long gap)."""
+        if len(work) < self._c.min_points:
+            f.diag.skipped = f"too few points ({len(work)} < {self._c.min_points} after range crop)"
+            return T_pred
+        t = time.perf_counter()
+        work = self.motion.deskew(work)
+        f.timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
+        try:
+            starts = self.motion.gap_hypotheses(work.stamp)
+            f.diag.gap_hypotheses = len(starts)
+            if starts:
+                f.est, T_pred = self.search.best_after_gap(work, starts, f.timings)
+            elif self.gate.n_trusted == 1:  # a map, but no velocity yet: search the motion
+                since = self.clock.duration(self.gate.trusted_stamp, f.stamp)
+                f.est, T_pred, n = self.search.first_motion(
+                    work, T_pred, self.motion.start_hypotheses(since), f.timings, self.gate.lost
+                )
+                f.diag.start_hypotheses = n
+            else:
+                f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
+            f.diag.skipped = f.est.skipped
+            f.diag.counts = f.est.counts
+            f.diag.registration = f.est.registration
+            f.ground_plane = f.est.ground_plane
+        except RegistrationError as exc:
+            log.warning("frame %d: registration failed (%s); using prediction", f.index, exc)
+            f.diag.lost = f"registration failed: {exc}"
+            f.diag.rejected = True
+        has_own = f.est is not None and f.est.filtered is not None
+        f.filtered = f.est.filtered if has_own else work.xyz
+        return T_pred
+
+    def _scan_state(self) -> object:
+        """What ``_estimate`` changes in the front end per scan (e.g. a dynamics tracker),
+        restored before each further start so that every start sees the same scan."""
+        return None
+
+    def _restore_scan_state(self, state: object) -> None:
+        """Undo ``_estimate``'s per-scan changes back to ``state``."""
+
+    def _judge(self, f: _Frame, T_pred: np.ndarray) -> None:
+        """The gate's verdict on ``f.est``; a trusted scan enters the map once the sensor
+        moved, and teaches the gate's normal only then."""
+        est = f.est
+        if est.result is not None:
+            est.information = information_from_hessian(
+                est.H, est.residual_variance, self._c.information
+            )
+            f.diag.lost = self.gate.judge(
+                est.result, est.information.min_eigenvalue, est.pose, T_pred, f.stamp
+            )
+        if f.diag.lost is not None:
+            f.diag.rejected = True
+            log.info("frame %d: registration rejected (%s); using prediction", f.index, f.diag.lost)
+            return
+        moved = self.map_policy.wants(est.pose)
+        if moved:
+            t = time.perf_counter()
+            self._insert(est, f.timings)
+            f.timings["map_ms"] = (time.perf_counter() - t) * 1e3
+            self.map_policy.inserted(est.pose)
+        f.diag.map_skipped = not moved
+        min_eig = est.information.min_eigenvalue if est.information is not None else np.nan
+        # the normal learns only from registrations the gate could test against a prediction
+        tested = self.gate.n_trusted >= 2
+        trusted = self.gate.trust(est.pose, f.stamp, est.result, min_eig, learn=moved and tested)
+        f.diag.reinitialised = trusted.reinitialised
+        if trusted.recovered:  # the motion model restarts from the mean over the stretch
+            self.motion.restart(trusted.T_rel, trusted.lost_for, trusted.n)
+            f.diag.recovered = True
+
+    def _close_tracking(self, f: _Frame) -> None:
+        """A frame without a trusted pose falls back to the prediction (tracking is lost
+        once it was established)."""
+        d = f.diag
+        if d.skipped is not None or d.lost is not None:
+            f.est = None
+            if self.gate.miss():
+                d.lost = d.lost or d.skipped
+        d.tracking_lost = d.lost is not None
+        d.map_points = self._map_size()
+
+    def _keyframe(self, pose: np.ndarray, f: _Frame) -> KeyframeDecision:
+        """The keyframe decision and its diagnostics."""
+        est, d = f.est, f.diag
+        information = None
+        if est is not None and est.H is not None:
+            information = est.information or information_from_hessian(
+                est.H, est.residual_variance, self._c.information
+            )
+            d.min_info_eigenvalue = information.min_eigenvalue
+        H = None if est is None else est.H
+        kf = self.keyframes.decide(pose, est is not None, information, H, f.filtered, f.timings)
+        d.degenerate = kf.degenerate
+        if kf.ambiguity is not None:
+            d.ambiguous = bool(kf.ambiguity.ambiguous)
+            d.ambiguity = kf.ambiguity.ratio
+            d.ambiguity_axis = (float(kf.ambiguity.axis[0]), float(kf.ambiguity.axis[1]))
+        return kf
+
+    def _status(self, f: _Frame, initialising: bool) -> TrackingStatus:
+        if initialising:
+            return TrackingStatus.INITIALISING
+        if f.est is not None:
+            return TrackingStatus.RECOVERED if f.diag.recovered else TrackingStatus.TRACKED
+        return TrackingStatus.LOST if f.diag.rejected else TrackingStatus.PREDICTED
+
+    def _odometry(
+        self, f: _Frame, pose: np.ndarray, kf: KeyframeDecision, status: TrackingStatus
+    ) -> Odometry:
+        ground = f.ground_plane
+        extras = legacy_extras(f.diag, ground, kf.info_before_ambiguity, kf.ambiguity_ms)
+        return Odometry(
+            stamp=f.stamp,
+            pose=pose,
+            is_keyframe=kf.is_keyframe,
+            relative=kf.relative,
+            info=kf.info,
+            cloud=kf.cloud,
+            extras=extras,
+            status=status,
+            diagnostics=f.diag,
+            ground_plane=ground,
+        )

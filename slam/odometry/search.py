@@ -1,0 +1,108 @@
+"""Registration of one scan from several starts: the speed hypotheses of a run's first
+motion and the positions along the extrapolated motion after a long gap."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from slam.odometry.config import CommonConfig
+from slam.odometry.estimate import Estimate
+from slam.registration.gicp import RegistrationError
+from slam.types import Scan
+
+Register = Callable[[Scan, np.ndarray, dict, bool], Estimate]
+Tried = list[tuple[Estimate, np.ndarray]]
+
+
+def start_beats(est: Estimate, base: Estimate | None, c: CommonConfig) -> bool:
+    """Whether a registration from a speed hypothesis explains the scan better than the one
+    from the prediction ``base``: ``base`` failed or did not converge and ``est`` did, or
+    ``est`` converged more than ``start_min_shift`` m away with ``start_min_gain`` more
+    correspondences (else the prediction's stands: the same minimum found twice)."""
+    res = est.result
+    if res is None or not res.converged:
+        return False
+    if base is None or not base.result.converged:
+        return True
+    shift = float(np.linalg.norm(est.pose[:3, 3] - base.pose[:3, 3]))
+    gain = res.num_inliers / max(base.result.num_inliers, 1) - 1.0
+    return shift > c.start_min_shift and gain > c.start_min_gain
+
+
+def most_explained(tried: Tried) -> tuple[Estimate, np.ndarray]:
+    """The registration with the most correspondences (the consensus; fitness breaks ties):
+    along a street the wrong alignments fit tighter but on fewer points."""
+    return max(tried, key=lambda et: (et[0].result.num_inliers, -et[0].result.rmse))
+
+
+class StartSearch:
+    """Registers a scan from several starts through the front end's ``register(scan, T0,
+    timings, wide)``, each from the same per-scan front-end state (``save`` / ``restore``:
+    what registering a scan advances, e.g. a dynamics tracker)."""
+
+    def __init__(
+        self,
+        cfg: CommonConfig,
+        register: Register,
+        save: Callable[[], object],
+        restore: Callable[[object], None],
+    ):
+        self._c = cfg
+        self._register = register
+        self._save = save
+        self._restore = restore
+
+    def tried(self, work: Scan, starts: list[np.ndarray], timings: dict) -> Tried:
+        """The registrations (wide search) from each start that did not fail."""
+        state = self._save()
+        out = []
+        for T0 in starts:
+            self._restore(state)
+            try:
+                out.append((self._register(work, T0, timings, True), T0))
+            except RegistrationError:
+                continue
+        return out
+
+    def best_after_gap(
+        self, work: Scan, starts: list[np.ndarray], timings: dict
+    ) -> tuple[Estimate, np.ndarray]:
+        """After a long gap: the registration that explains the most of the scan, and its
+        start."""
+        tried = self.tried(work, starts, timings)
+        if not tried:
+            raise RegistrationError("no registration converged from any gap hypothesis")
+        scored = [(e, T0) for e, T0 in tried if e.result is not None]
+        return most_explained(scored) if scored else tried[0]
+
+    def first_motion(
+        self,
+        work: Scan,
+        T_pred: np.ndarray,
+        starts: list[np.ndarray],
+        timings: dict,
+        wide: bool,
+    ) -> tuple[Estimate, np.ndarray, int]:
+        """A map but no velocity yet: the registration from the prediction (at rest, the
+        first of ``starts``) as usual and from the speed hypotheses; another start's is
+        kept only where it ``start_beats`` the prediction's. Returns it, its start and the
+        number of starts."""
+        state = self._save()
+        try:
+            base = self._register(work, T_pred, timings, wide)
+        except RegistrationError:
+            base = None
+        if base is not None and base.result is None:  # nothing to register against
+            return base, T_pred, 0
+        after = self._save()
+        self._restore(state)
+        tried = self.tried(work, starts[1:], timings)
+        self._restore(after)
+        better = [(e, T0) for e, T0 in tried if start_beats(e, base, self._c)]
+        if better:
+            return (*most_explained(better), len(starts))
+        if base is None:
+            raise RegistrationError("no registration converged from any start hypothesis")
+        return base, T_pred, len(starts)

@@ -1,0 +1,177 @@
+"""The parts of the scan-to-map frame loop (``slam.odometry``), each on its own: sweep
+clock, motion model, tracking gate, map-insert policy, keyframe policy, legacy extras."""
+
+import numpy as np
+import pytest
+
+from slam.odometry.clock import SweepClock
+from slam.odometry.config import CommonConfig
+from slam.odometry.extras import legacy_extras
+from slam.odometry.gate import TrackingGate
+from slam.odometry.keyframes import KeyframePolicy
+from slam.odometry.map_policy import MapInsertPolicy
+from slam.odometry.motion import MotionModel
+from slam.registration.gicp import RegistrationResult, se3_exp
+from slam.registration.information import Information
+from slam.types import OdometryDiagnostics, RegistrationDiagnostics
+
+
+def pose(x=0.0, y=0.0, yaw_deg=0.0) -> np.ndarray:
+    return se3_exp(np.array([0.0, 0.0, np.radians(yaw_deg), x, y, 0.0]))
+
+
+def result(rmse=0.05, inliers=1800, source=2000, converged=True) -> RegistrationResult:
+    return RegistrationResult(
+        T_target_source=np.eye(4),
+        H=np.eye(6),
+        b=np.zeros(6),
+        cost=1.0,
+        fitness=rmse**2,
+        rmse=rmse,
+        num_inliers=inliers,
+        num_source=source,
+        iterations=5,
+        converged=converged,
+        stop_reason="step" if converged else "max_iterations",
+    )
+
+
+def clock_with(stamps) -> SweepClock:
+    c = SweepClock()
+    for s in stamps:
+        c.observe(s)
+    return c
+
+
+def test_clock_rounds_jittered_gaps_to_whole_sweeps():
+    c = clock_with([0.0, 0.1, 0.2, 0.3])
+    assert c.period() == pytest.approx(0.1)
+    assert c.duration(0.3, 0.414) == pytest.approx(0.1)  # a late stamp: one sweep
+    assert c.duration(0.3, 0.61) == pytest.approx(0.3)  # two dropped scans
+    assert c.duration(0.3, 0.3) is None and c.duration(None, 1.0) is None
+    assert clock_with([0.0, 0.1]).duration(0.1, 0.2137) == pytest.approx(0.1137)  # raw early
+
+
+def test_motion_model_constant_velocity_and_gap_scaling():
+    clock = clock_with([0.0, 0.1, 0.2, 0.3])
+    m = MotionModel(CommonConfig(), clock)
+    m.T_last, m.T_motion, m.motion_dt = pose(3.0), pose(1.0), 0.1
+    assert np.allclose(m.predict(0.4)[:3, 3], [4.0, 0, 0])  # one sweep: as it is
+    assert np.allclose(m.predict(0.6)[:3, 3], [6.0, 0, 0])  # three sweeps: scaled
+    # beyond max_extrapolation_seconds the motion stops there
+    assert np.allclose(m.predict(10.3)[:3, 3], [3.0 + 30.0, 0, 0])
+    m2 = MotionModel(CommonConfig(constant_velocity=False), clock)
+    m2.T_last, m2.T_motion = pose(3.0), pose(1.0)
+    assert np.allclose(m2.predict(0.4), pose(3.0))
+
+
+def test_gap_hypotheses_span_braking_and_speeding_up():
+    clock = clock_with([0.0, 0.1, 0.2, 0.3])
+    m = MotionModel(CommonConfig(), clock)
+    m.T_motion, m.motion_dt = pose(1.2), 0.1  # 12 m/s
+    assert m.gap_hypotheses(0.4) == []  # no gap
+    starts = m.gap_hypotheses(0.3 + 2.0)  # a 2 s stall: 24 m +- 0.5 * 3 * 4 = 6 m
+    xs = [T[0, 3] for T in starts]
+    assert min(xs) == pytest.approx(18.0) and max(xs) == pytest.approx(30.0)
+    assert np.allclose(np.diff(xs), xs[1] - xs[0]) and xs[1] - xs[0] <= 2.0 + 1e-9
+
+
+def test_motion_model_learns_and_restarts():
+    clock = clock_with([0.0, 0.1])
+    m = MotionModel(CommonConfig(deskew_smoothing=0.5), clock)
+    m.learn(pose(0.5), 0.2)
+    assert m.motion_dt == pytest.approx(0.1) and np.allclose(m.T_motion, pose(0.5))
+    assert np.allclose(m.twist[3:], [0.5, 0, 0])  # no smoothing before two frames
+    m.advance(pose(0.5))
+    m.restart(pose(3.0), lost_for=0.6, n=6)  # 6 frames over the lost stretch
+    assert m.motion_dt == pytest.approx(0.1) and np.allclose(m.T_motion[:3, 3], [0.5, 0, 0])
+
+
+def test_gate_rejects_a_jump_and_recovers_after_losing():
+    clock = clock_with([0.0, 0.1, 0.2, 0.3])
+    gate = TrackingGate(CommonConfig(), clock)
+    for i in range(3):
+        gate.trust(pose(0.1 * i), 0.1 * i, result(), 30.0, learn=True)
+    assert gate.n_trusted == 3 and len(gate.normal) == 3
+    # 10 m in one sweep from the last trusted pose: faster than max_speed
+    why = gate.judge(result(), 30.0, pose(10.2), pose(0.3), 0.3)
+    assert why is not None and "speed" in why
+    assert gate.judge(result(), 30.0, pose(0.3), pose(0.3), 0.3) is None
+    assert gate.miss() and gate.miss() and gate.lost_frames == 2 and gate.lost
+    out = gate.trust(pose(0.5), 0.5, result(), 30.0, learn=True)
+    assert out.recovered and out.n == 3 and np.allclose(out.T_rel[:3, 3], [0.3, 0, 0])
+    assert not gate.lost
+
+
+def test_gate_relaxes_after_lost_seconds_and_restarts_its_normal():
+    clock = clock_with([0.0, 0.1, 0.2, 0.3])
+    gate = TrackingGate(CommonConfig(max_lost_seconds=1.0, fitness_relax_seconds=0.0), clock)
+    gate.trust(pose(), 0.0, result(), 30.0, learn=True)
+    assert gate.relaxation(5.0) == 1.0  # not lost: never relaxed
+    gate.miss()
+    assert gate.relaxation(0.5) == 1.0 and gate.relaxation(2.5) == 4.0
+    out = gate.trust(pose(), 2.5, result(), 30.0, learn=True)
+    assert out.reinitialised and len(gate.normal) == 1
+    assert not TrackingGate(CommonConfig(), SweepClock()).miss()  # before the map: not lost
+
+
+def test_map_policy_needs_motion():
+    p = MapInsertPolicy(CommonConfig(map_min_translation=0.05, map_min_rotation_deg=0.5))
+    assert p.wants(np.eye(4))
+    p.inserted(np.eye(4))
+    assert not p.wants(pose(0.04)) and p.wants(pose(0.06))
+    assert not p.wants(pose(yaw_deg=0.4)) and p.wants(pose(yaw_deg=0.6))
+
+
+def test_keyframe_policy_selection_and_drift_information():
+    kp = KeyframePolicy(CommonConfig())
+    info = Information(np.eye(6) * 1e4, False, 1.0, np.zeros(6))
+    cloud = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
+    first = kp.decide(pose(), True, info, np.eye(6), cloud, {})
+    assert first.is_keyframe and 0 < len(first.cloud) <= 2000 and first.cloud.dtype == np.float32
+    near = kp.decide(pose(0.5), True, info, np.eye(6), cloud, {})
+    assert not near.is_keyframe and len(near.cloud) == 0
+    assert not kp.decide(pose(2.0), False, None, None, cloud, {}).is_keyframe  # on prediction
+    far = kp.decide(pose(2.0), True, info, np.eye(6), cloud, {})
+    assert far.is_keyframe and np.allclose(far.relative, pose(2.0)) and kp.n_keyframes == 2
+    # drift ~ distance: 2 m -> sigma_t^2 = 1e-4 + (0.01 * 2)^2
+    assert 1.0 / far.info[3, 3] == pytest.approx(1e-4 + 0.02**2)
+
+
+def test_legacy_extras_keeps_the_flat_keys():
+    d = OdometryDiagnostics(n_points=10, n_after_crop=9, rejected=True, lost="why")
+    d.registration = RegistrationDiagnostics(4, 0.01, True, 90, 0.9)
+    d.counts = {"n_edges": 3}
+    d.timings_ms = {"total_ms": 1.0}
+    ex = legacy_extras(d, ground_plane=np.array([0, 0, 1, 1.7]))
+    assert ex["rejected"] == 1 and type(ex["rejected"]) is int and ex["lost"] == "why"
+    assert ex["tracking_lost"] == 0 and ex["degenerate"] is False and ex["n_edges"] == 3
+    assert ex["iterations"] == 4 and ex["inliers"] == 90 and ex["ground_plane"][3] == 1.7
+    assert list(ex)[-1] == "total_ms" and "skipped" not in ex
+
+
+def test_a_start_hypothesis_replaces_the_prediction_only_when_it_explains_more():
+    from slam.odometry.estimate import Estimate
+    from slam.odometry.search import start_beats
+
+    c = CommonConfig()
+    base = Estimate(pose(0.015), result=result(inliers=537))
+    same = Estimate(pose(0.014), result=result(inliers=539))  # the same minimum again
+    assert not start_beats(same, base, c)
+    elsewhere = Estimate(pose(1.3), result=result(inliers=600))
+    assert start_beats(elsewhere, base, c)
+    assert not start_beats(Estimate(pose(1.3), result=result(inliers=540)), base, c)
+    stuck = Estimate(pose(1.25), result=result(inliers=7032, converged=False))
+    assert start_beats(Estimate(pose(1.3), result=result(inliers=6988)), stuck, c)
+    assert start_beats(same, None, c)  # the prediction's registration failed
+    assert not start_beats(Estimate(pose(1.3), result=result(converged=False)), None, c)
+
+
+def test_start_hypotheses_search_forward_and_backward_up_to_the_speed_cap():
+    m = MotionModel(CommonConfig(start_max_speed=40.0, start_speed_step=20.0), SweepClock())
+    m.T_last = pose(5.0)
+    xs = sorted(T[0, 3] - 5.0 for T in m.start_hypotheses(0.1))
+    assert np.allclose(xs, [-4.0, -2.0, 0.0, 2.0, 4.0])  # rest, +-20, +-40 m/s over 0.1 s
+    assert np.allclose(m.start_hypotheses(0.1)[0], pose(5.0))  # rest first
+    assert m.start_hypotheses(None) == []
+    assert MotionModel(CommonConfig(start_max_speed=0.0), SweepClock()).start_hypotheses(0.1) == []
