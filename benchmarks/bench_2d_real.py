@@ -92,7 +92,7 @@ def run_method(method: str, log: Path, out: Path, frames: int | None, sets: list
 
 
 def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> list[dict]:
-    path = DATA / f"{log}.clf.bz2"
+    path = Path(args.data) / f"{log}.clf.bz2"
     base = Path(args.out)
     rel, info = log_relations(path, args.frames, base)
     print(f"{log}: {info['kept']} self relations of {info['pairs']} pairs ({info['rejected']})")
@@ -132,6 +132,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="runs/bench_2d_real")
     ap.add_argument("--logs", nargs="+", default=list(LOGS), choices=LOGS)
+    ap.add_argument("--data", default=str(DATA), help="folder of the CARMEN logs")
     ap.add_argument("--frames", type=int, help="first N scans of each log (default: all)")
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--relations", nargs="*", default=[], help="LOG=FILE published relations")

@@ -17,12 +17,11 @@ from slam.sim.floorplan2d import simulate2d
 from slam.types import Keyframe, Scan
 from slam.visit_graph import (
     VisitGraphConfig,
-    offset_stats,
     run_visit_graph,
     vertex_scans,
     visit_cloud,
-    visit_offsets,
 )
+from slam.visit_refine import offset_stats, visit_offsets
 
 
 @pytest.fixture(scope="module")
