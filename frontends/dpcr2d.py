@@ -59,6 +59,9 @@ class Dpcr2d:
         self.division = RegionDivision.with_width(
             self.cfg.region_width, self.cfg.region_grid.resolution
         )
+        # the scan-matched relative poses are this much better than the planar model; the
+        # wheel odometry alone (first registration off) keeps the model
+        self._info_scale = self.cfg.graph_info_scale if self.cfg.first_registration else 1.0
         self.pose = np.zeros(3)
         self.motion = np.zeros(3)  # last frame-to-frame motion (own frame)
         self.frame = 0
@@ -486,7 +489,7 @@ class Dpcr2d:
             pose=T,
             is_keyframe=is_kf,
             relative=relative,
-            info=self.cfg.graph_info_scale * planar_information(relative),
+            info=self._info_scale * planar_information(relative),
             cloud=cloud,
             extras=extras,
         )

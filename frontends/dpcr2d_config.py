@@ -62,7 +62,7 @@ class Dpcr2dConfig:
     reanchor_loops (with graph_feedback): a re-anchor is an edge of the region graph
     (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
 
-    visit_scans (0: off): the visit graph (``slam.visit_graph``, issue 14): a keyframe at
+    visit_scans (0: off): the visit graph (``slam.visit_graph``): a keyframe at
     frame 0 and at the last frame of every ``visit_scans`` (not at region changes), its
     cloud the hit cells of the scans since the keyframe before and the ``visit_pad``
     before those, drawn at this front end's own poses (measurement only, never a map the
@@ -84,7 +84,8 @@ class Dpcr2dConfig:
     that model (self-consistency relations, median 0.8 - 1 cm over 0.5 - 2 m; the
     optimised graphs leave the odometry factors at chi2 / dof 0.01 - 0.04), and a loose
     chain lets the loop edges bend the trajectory between vertices, which the
-    relations see as steps (Intel 1.09 -> 1.24 cm mean with 1, 1.08 cm with 64).
+    relations see as steps (Intel 1.09 -> 1.24 cm mean with 1, 1.08 cm with 64). Only with
+    the first registration on (wheel odometry alone keeps the model).
     """
 
     submap_scans: int = 20

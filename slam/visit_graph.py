@@ -1,4 +1,4 @@
-"""A visit graph for 2D laser SLAM (issue 14, "walls single"): vertices per visit, not
+"""A visit graph for 2D laser SLAM: vertices per visit, not
 per region (a submap of a fixed number of scans, as in Cartographer), edges only between
 measurement-only clouds, a wide loop search, and the final poses of every scan from the
 optimised visit poses.

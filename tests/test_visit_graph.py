@@ -1,4 +1,4 @@
-"""The visit graph (issue 14): vertices per visit, loop edges between measurement-only
+"""The visit graph: vertices per visit, loop edges between measurement-only
 visit clouds found by the wide correlative search, and its use through ``dpcr2d``
 (``visit_scans``) and the region-edges plugin."""
 
