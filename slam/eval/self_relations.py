@@ -10,7 +10,8 @@ scans are registered with no trajectory estimate involved: a correlative search
 odometry's relative pose, then PLICP on the first scan's line features
 (``slam.registration.plicp``) from the search's best. A relation is kept when
 
-- the search is unique (second peak / best <= ``max_uniqueness``: not a corridor),
+- the search is unique (second peak / best <= ``max_uniqueness``: not a corridor) and
+  its peak is inside the window, not on its edge (the true one may lie beyond),
 - PLICP constrains every direction (no degenerate direction left at the start),
 - ``min_overlap`` of the second scan's points have a point of the first within
   ``overlap_m`` and ``min_inliers`` of those lie within ``inlier_m`` after PLICP,
@@ -104,6 +105,12 @@ def register_pair(
     found = correlative_search(a, b, guess, scfg)
     if found.uniqueness > cfg.max_uniqueness:
         return None, "ambiguous"
+    shift = np.abs(found.pose[:2] - guess[:2]).max()
+    turn = abs(np.degrees(wrap(found.pose[2] - guess[2])))
+    if shift > cfg.search_m - 2 * scfg.resolution or turn > cfg.search_deg - 2 * (
+        scfg.angle_step_deg
+    ):
+        return None, "peak at the window's edge"
     res = plicp(b, ref_a, found.pose, cfg.plicp)
     if res.degenerate or not res.converged:
         return None, "degenerate"
