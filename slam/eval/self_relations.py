@@ -81,7 +81,7 @@ class SelfRelationStats:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
 
 
-def _reference(pts: np.ndarray, resolution: float) -> LineReference | None:
+def scan_reference(pts: np.ndarray, resolution: float) -> LineReference | None:
     """Line features of one scan's cell means (hits weighted), as a PLICP reference."""
     if len(pts) < 20:
         return None
@@ -98,7 +98,7 @@ def register_pair(
 ) -> tuple[np.ndarray | None, str]:
     """Scan ``b`` (N, 2) registered on scan ``a`` (M, 2) around ``guess`` (b in a's frame):
     (pose of b in a's frame, "") when every check passes, else (None, why not)."""
-    ref_a, ref_b = _reference(a, cfg.resolution), _reference(b, cfg.resolution)
+    ref_a, ref_b = scan_reference(a, cfg.resolution), scan_reference(b, cfg.resolution)
     if ref_a is None or ref_b is None:
         return None, "too few points"
     scfg = replace(cfg.search, max_shift=cfg.search_m, max_angle_deg=cfg.search_deg)
