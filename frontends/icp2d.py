@@ -215,6 +215,13 @@ class Icp2d:
             and abs(np.degrees(step[2])) <= self.cfg.max_step_deg
         )
 
+    def _start(self, ref: np.ndarray, pts: np.ndarray, predicted: np.ndarray, blind: bool):
+        """Where the registration starts: the prediction, or without wheels (``blind``) on
+        the first ``start_frames`` a correlative search of the motion around it."""
+        if blind and self.frame <= self.cfg.start_frames:
+            return correlative_search(ref, pts, predicted, self.cfg.start).pose
+        return predicted
+
     def process(self, scan: Scan) -> Odometry:
         cfg = self.cfg
         t0 = time.perf_counter()
@@ -234,10 +241,7 @@ class Icp2d:
         elif self.window:
             t = time.perf_counter()
             ref = np.concatenate(list(self.window))
-            start = predicted
-            if (odom is None or not use) and self.frame <= cfg.start_frames:
-                start = correlative_search(ref, pts, predicted, cfg.start).pose
-            res = icp2d(pts, ref, start, cfg)
+            res = icp2d(pts, ref, self._start(ref, pts, predicted, odom is None or not use), cfg)
             extras.update(
                 icp_ms=(time.perf_counter() - t) * 1e3,
                 rmse=res.rmse,
