@@ -20,6 +20,7 @@ import numpy as np
 
 from slam.errors import ConfigError, SlamError
 from slam.factors import key
+from slam.graph2d_gate import disagreement, optimize_gated
 
 OPTIMIZERS = ("gauss_newton", "levenberg_marquardt")
 _PLANE = [3, 4, 2]  # (x, y, yaw) in gtsam's Pose3 tangent order (rx, ry, rz, tx, ty, tz)
@@ -29,12 +30,19 @@ _PLANE = [3, 4, 2]  # (x, y, yaw) in gtsam's Pose3 tangent order (rx, ry, rz, tx
 class RegionGraphConfig:
     """optimizer: "gauss_newton" (the paper) or "levenberg_marquardt"; max_iterations and
     relative_error_tol of the optimiser; optimize_every: keyframes between optimisations
-    (1 = every region event)."""
+    (1 = every region event); gate_sigma: a loop edge whose residual exceeds this many of
+    its claimed sigmas at the result is switched off and the graph re-optimised
+    (``slam.graph2d_gate``, at most ``gate_rounds`` times; 0: robust kernel only);
+    disagree_sigma: an odometry factor (the front end's relative pose) this many sigmas off
+    at the final estimate marks the run in ``stats()`` (metrics.json ``backend_stats``)."""
 
     optimizer: str = "gauss_newton"
     max_iterations: int = 30
     relative_error_tol: float = 1e-6
     optimize_every: int = 1
+    gate_sigma: float = 4.0
+    gate_rounds: int = 3
+    disagree_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -88,7 +96,7 @@ class RegionGraphBackend:
 
     def __init__(self, config: RegionGraphConfig | None = None):
         self.config = config or RegionGraphConfig()
-        self._graph2 = gtsam.NonlinearFactorGraph()
+        self._factors2: list[Any] = []
         self._graph3 = gtsam.NonlinearFactorGraph()
         self._values2 = gtsam.Values()
         self._values3 = gtsam.Values()
@@ -97,13 +105,14 @@ class RegionGraphBackend:
         self._pending = 0
         self.optimize_ms: list[float] = []  # the paper's T_graph, one per optimisation
         self.failures: list[str] = []  # optimisations that fell back (GN -> LM) or failed
+        self._gate = None  # the last gated optimisation (slam.graph2d_gate.GateResult)
 
     def update(
         self, factors: list[Any], initial: dict[int, gtsam.Pose3], loop_closed: bool = False
     ) -> None:
         for factor in factors:
             self._graph3.add(factor)
-            self._graph2.add(planar_factor(factor))
+            self._factors2.append(planar_factor(factor))
         for kf_id, pose in initial.items():
             if self._values2.exists(key(kf_id)):
                 raise SlamError(f"keyframe {kf_id} already has a value in the region graph")
@@ -128,7 +137,14 @@ class RegionGraphBackend:
         order = [self.config.optimizer] + [o for o in OPTIMIZERS if o != self.config.optimizer]
         for name in order:  # Gauss-Newton stops on an indeterminant system; LM damps it
             try:
-                result = self._run(name, start)
+                self._gate = optimize_gated(
+                    self._factors2,
+                    start,
+                    lambda graph, values, name=name: self._run(name, graph, values),
+                    self.config.gate_sigma,
+                    self.config.gate_rounds,
+                )
+                result = self._gate.values
                 break
             except RuntimeError as exc:
                 self.failures.append(f"{name}: {str(exc).splitlines()[0] if str(exc) else exc}")
@@ -136,17 +152,19 @@ class RegionGraphBackend:
             self._estimate = {i: result.atPose2(key(i)) for i in self._ids}
         self.optimize_ms.append((time.perf_counter() - t) * 1e3)
 
-    def _run(self, name: str, start: gtsam.Values) -> gtsam.Values:
+    def _run(
+        self, name: str, graph: gtsam.NonlinearFactorGraph, start: gtsam.Values
+    ) -> gtsam.Values:
         cfg = self.config
         if name == "gauss_newton":
             params = gtsam.GaussNewtonParams()
             params.setMaxIterations(cfg.max_iterations)
             params.setRelativeErrorTol(cfg.relative_error_tol)
-            return gtsam.GaussNewtonOptimizer(self._graph2, start, params).optimize()
+            return gtsam.GaussNewtonOptimizer(graph, start, params).optimize()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(cfg.max_iterations)
         params.setRelativeErrorTol(cfg.relative_error_tol)
-        return gtsam.LevenbergMarquardtOptimizer(self._graph2, start, params).optimize()
+        return gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
 
     def estimate(self) -> dict[int, gtsam.Pose3]:
         return {i: pose3_of(p) for i, p in self._estimate.items()}
@@ -169,11 +187,21 @@ class RegionGraphBackend:
         return gtsam.Values(self._values3)
 
     def stats(self) -> dict[str, float]:
-        """Optimisations run and their time (ms): the paper's graph optimisation time."""
+        """Optimisations run and their time (ms): the paper's graph optimisation time; the
+        last result's agreement with the front end (``slam.graph2d_gate.disagreement``)
+        and ``disagrees_with_frontend`` (1.0 when an odometry factor lies more than
+        ``disagree_sigma`` of its claimed sigmas off)."""
         ms = self.optimize_ms
-        return {
+        out = {
             "optimizations": float(len(ms)),
             "optimize_mean_ms": float(np.mean(ms)) if ms else 0.0,
             "optimize_max_ms": float(np.max(ms)) if ms else 0.0,
             "optimizer_fallbacks": float(len(self.failures)),
         }
+        if self._gate is not None:
+            d = disagreement(self._factors2, self._gate.sigmas, self._gate.off)
+            d["disagrees_with_frontend"] = float(
+                d["frontend_residual_max_sigma"] > self.config.disagree_sigma
+            )
+            out.update(d)
+        return out

@@ -4,7 +4,7 @@ scan-to-submap ICP with an iSAM2 pose graph of every 5th scan).
 
 (1) On a simulated multi-room scene with ground truth (rooms2d, 2 laps at 1 m/s, a poor
 wheel odometry: 3 % slip, 0.5 deg/sqrt(m) heading walk), ``dpcr2d_regions`` (the paper's
-region graph; ``dpcr2d`` has the visit graph as back end since session 9) for each region width
+region graph; ``dpcr2d`` has the visit graph as back end) for each region width
 S: number of regions, map storage (bytes of the stored grids: regional maps), processing
 time per scan (ms, the front end's ``total_ms``), graph optimisation time (ms per
 optimisation, the region graph's ``stats()``), LocErr_ave (eq. 17: the mean of the
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
         for name, path, truth, frames in inputs:
             configs = {
                 "dpcr": ("dpcr2d_regions", "DPCR", []),  # the paper's region graph
-                "visit": ("dpcr2d", "DPCR visit graph", []),  # the default since session 9
+                "visit": ("dpcr2d", "DPCR visit graph", []),  # the default
                 "icp": ("configs/icp2d.yaml", "ICP baseline", []),
             }
             for m in args.methods:

@@ -32,11 +32,10 @@ from slam.io.carmen import CarmenSource
 from slam.mapping.grid2d import matrix_to_pose2, pose2_to_matrix
 from slam.visit_graph import (
     VisitGraphConfig,
-    offset_stats,
     run_visit_graph,
     vertex_scans,
-    visit_offsets,
 )
+from slam.visit_refine import offset_stats, visit_offsets
 
 
 def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:

@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.errors import ConfigError
-from slam.features.lines2d import LineConfig, extract_lines
+from frontends.dpcr2d_config import Dpcr2dConfig
+from frontends.dpcr2d_maps import Region, fuse_visits
+from frontends.dpcr2d_steps import check_wheels, revisit_match
+from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
-    GridConfig,
     OccupancyGrid,
     RegionDivision,
     compose2d,
@@ -40,138 +40,13 @@ from slam.mapping.grid2d import (
     transform2d,
     wrap,
 )
-
-__all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
-from slam.registration.correlative2d import CorrelativeConfig, correlative_search
-from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
+from slam.registration.correlative2d import correlative_search
+from slam.registration.plicp import LineReference, PlicpResult, plicp
 from slam.types import Odometry, Scan
 
+__all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
+
 _PLANE = [3, 4, 2]  # (x, y, theta) in the 6x6 information's (rx, ry, rz, tx, ty, tz)
-
-
-def _submap_grid() -> GridConfig:
-    # hits only over a sliding window: a cell is an obstacle once two scans hit it
-    return GridConfig(hit=1.0, miss=-1.0, clamp=300.0, occupied=0.5)
-
-
-@dataclass
-class Dpcr2dConfig:
-    """DPCR-SLAM settings (paper 003).
-
-    submap_scans: N, the scans of the submap; k1 / k2: frames between line refreshes of
-    the submap / regional map (K2 > K1); region_width: S (m; the paper's study
-    recommends 4 m); second_every: frames between second registrations;
-    first_registration / second_registration: switch either off (the ablation; both off
-    = wheel odometry with maps); use_odometry: predict from the wheel odometry when the
-    input has it (``Scan.odom``; else constant velocity) - along a corridor whose ends
-    the laser does not see, nothing else says how far the robot went; odometry_prior:
-    the wheel-odometry increment also enters the first registration's solve as a
-    weighted prior (``slam.registration.plicp``; noise model
-    ``slam.mapping.grid2d.planar_information`` of the step), not only as its start;
-    max_range (m):
-    scan points beyond are dropped; min_points: fewest points of a usable scan;
-    max_step (m, deg): a registration moving the pose further than this from the
-    prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
-    grids (5 cm cells).
-
-    revisit_search: on entering a region, the submap is searched over the wide window
-    ``revisit`` (rotations and shifts, ``slam.registration.correlative2d``) on the maps
-    of the regions around (centres within ``revisit_radius`` m, the nearest
-    ``revisit_regions``) that the robot left ``revisit_path`` m ago or more (drawn before
-    the drift since; the drifted pose may well fall in a region never mapped), before the
-    second registration, which only converges within ~0.3 m / a few degrees: real
-    revisits come back 15 deg / metres off. The match is taken when it is unique (second
-    peak / best <= ``revisit_max_uniqueness``) and, after PLICP, ``revisit_min_inliers``
-    of the submap's obstacle cells lie within ``revisit_match_distance`` of the map; the
-    robot and the submap then move onto the region's map (re-anchored), so that the scans
-    that follow draw its walls where they already are. A correction within
-    ``revisit_min_m`` and ``revisit_min_deg`` is left to the second registration.
-
-    graph_feedback: after each region-graph optimisation (the pipeline's
-    ``on_graph_update``) the robot, its submap and every regional map move to where the
-    graph put them: a regional map is placed by the optimised pose of the keyframe that
-    opened it (a per-region offset, the grid itself is never resampled), the robot by that
-    of the last keyframe; scans that follow are drawn, and registered, in the graph's
-    frame. The reported odometry stays continuous (the moves are not in it: the graph made
-    them). visit_clouds (with graph_feedback): a keyframe's cloud, what the region edges
-    register, is the visit just ended (the submap at its start and every scan since, in
-    the front end's frame) instead of the regional map: a revisited map's older part lies
-    where the graph put it, and an edge from it would measure the graph's own estimate.
-    reanchor_loops (with graph_feedback): a re-anchor is an edge of the region graph
-    (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
-
-    visit_scans (0: off): the visit graph (``slam.visit_graph``, issue 14): a keyframe at
-    frame 0 and at the last frame of every ``visit_scans`` (not at region changes), its
-    cloud the hit cells of the scans since the keyframe before and the ``visit_pad``
-    before those, drawn at this front end's own poses (measurement only, never a map the
-    graph moved), for the region-edges plugin's visit loop search; ``visit_grid`` fuses
-    these clouds at the optimised keyframe poses (``map.pgm``). Needs graph_feedback off.
-    """
-
-    submap_scans: int = 20
-    k1: int = 5
-    k2: int = 20
-    region_width: float = 4.0
-    second_every: int = 5
-    first_registration: bool = True
-    second_registration: bool = True
-    use_odometry: bool = True
-    odometry_prior: bool = True
-    max_range: float = 30.0
-    min_points: int = 30
-    max_step: float = 0.5
-    max_step_deg: float = 20.0
-    submap_grid: GridConfig = field(default_factory=_submap_grid)
-    region_grid: GridConfig = field(default_factory=GridConfig)
-    lines: LineConfig = field(default_factory=LineConfig)
-    plicp: PlicpConfig = field(default_factory=PlicpConfig)
-    regional_plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
-    revisit_search: bool = True
-    revisit_path: float = 10.0
-    revisit_radius: float = 6.0
-    revisit_every: int = 0
-    revisit_regions: int = 6
-    revisit: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(max_shift=4.0))
-    revisit_max_uniqueness: float = 0.8
-    revisit_min_inliers: float = 0.5
-    revisit_match_distance: float = 0.1
-    revisit_min_m: float = 0.15
-    revisit_min_deg: float = 2.0
-    graph_feedback: bool = False
-    visit_clouds: bool = True
-    reanchor_loops: bool = True
-    visit_scans: int = 0
-    visit_pad: int = 15
-
-    def __post_init__(self) -> None:
-        if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
-            raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
-        if not self.region_width > 0:
-            raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
-        if self.visit_scans < 0 or self.visit_pad < 0:
-            raise ConfigError("dpcr2d: visit_scans and visit_pad must be >= 0")
-        if self.visit_scans and self.graph_feedback:
-            raise ConfigError(
-                "dpcr2d: visit_scans needs graph_feedback off (measurement-only clouds)"
-            )
-
-
-@dataclass
-class _Region:
-    grid: OccupancyGrid
-    ref: LineReference | None = None
-    refreshed_at: int = -(10**9)
-    left_at: float | None = None  # path length (m) when the robot last left the region
-    owner: int = 0  # the keyframe that opened the region (its pose places the grid)
-    # where the grid lies in the current map frame: map = offset o grid (x, y, theta)
-    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def to_grid(self, pose: np.ndarray) -> np.ndarray:
-        return compose2d(inverse2d(self.offset), pose)
-
-    def in_map(self, correction: np.ndarray) -> np.ndarray:
-        """A correction of the grid's frame expressed in the map frame."""
-        return compose2d(compose2d(self.offset, correction), inverse2d(self.offset))
 
 
 class Dpcr2d:
@@ -184,6 +59,9 @@ class Dpcr2d:
         self.division = RegionDivision.with_width(
             self.cfg.region_width, self.cfg.region_grid.resolution
         )
+        # the scan-matched relative poses are this much better than the planar model; the
+        # wheel odometry alone (first registration off) keeps the model
+        self._info_scale = self.cfg.graph_info_scale if self.cfg.first_registration else 1.0
         self.pose = np.zeros(3)
         self.motion = np.zeros(3)  # last frame-to-frame motion (own frame)
         self.frame = 0
@@ -191,11 +69,11 @@ class Dpcr2d:
         self.submap = OccupancyGrid(self.cfg.submap_grid)
         self.submap_ref: LineReference | None = None
         self.submap_refreshed_at = -(10**9)
-        self.regions: dict[int, _Region] = {}
+        self.regions: dict[int, Region] = {}
         self.region: int | None = None
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0,
-                       "revisit_searches": 0, "reanchored": 0}  # fmt: skip
+                       "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
@@ -283,31 +161,8 @@ class Dpcr2d:
         map_server reads it; False: each keyframe's visit cloud, hits only."""
         if not self.cfg.visit_scans:
             return None
-        if free_space:
-            from dataclasses import replace
-
-            from slam.mapping.carve2d import carve_scans
-
-            poses, scans = [], []
-            for kf_id, visit in enumerate(self.visit_scans):
-                T = estimates.get(kf_id)
-                if T is None:
-                    continue
-                pose = matrix_to_pose2(T)
-                for rel, pts in visit:
-                    poses.append(compose2d(pose, rel))
-                    scans.append(pts.astype(np.float64))
-            out = OccupancyGrid(replace(self.cfg.region_grid, subcell=False))
-            if poses:
-                carve_scans(out, np.array(poses), scans)
-            return out
-        out = OccupancyGrid(self.cfg.region_grid)
-        for kf_id, pts in enumerate(self.visit_points):
-            T = estimates.get(kf_id)
-            if T is not None and len(pts):
-                pose = matrix_to_pose2(T)
-                out.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
-        return out
+        return fuse_visits(self.visit_scans, self.visit_points, estimates,
+                           self.cfg.region_grid, free_space)  # fmt: skip
 
     def global_grid(self, corrections: dict[int, np.ndarray] | None = None) -> OccupancyGrid:
         """The global map: the regional maps fused probabilistically (log-odds added, paper
@@ -334,7 +189,7 @@ class Dpcr2d:
         self.submap_ref = LineReference.from_lines(lines) if len(obstacles) else None
         self.submap_refreshed_at = self.frame
 
-    def _region_ref(self, region: _Region) -> LineReference | None:
+    def _region_ref(self, region: Region) -> LineReference | None:
         if self.frame - region.refreshed_at >= self.cfg.k2 or region.ref is None:
             obstacles, hits = region.grid.obstacle_hits()
             if len(obstacles) < self.cfg.min_points:
@@ -398,7 +253,7 @@ class Dpcr2d:
         self._rebuild_submap()
         self._refresh_submap_lines()
 
-    def _old_maps(self) -> list[_Region]:
+    def _old_maps(self) -> list[Region]:
         """The maps of the regions near the robot (centres within ``revisit_radius``) that
         it left ``revisit_path`` m ago or more, nearest first (at most ``revisit_regions``):
         what a revisit should land on. The maps it drew since, in its current (maybe
@@ -414,52 +269,27 @@ class Dpcr2d:
                 near.append((d, region_id))
         return [self.regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
 
-    def _reanchor(self, maps: list[_Region], extras: dict) -> bool:
+    def _reanchor(self, maps: list[Region], extras: dict) -> bool:
         """Wide search of the submap on the old maps around the robot (see
         ``revisit_search``); True when the robot and the submap moved onto them."""
         cfg = self.cfg
         target = self.submap.obstacle_points()
-        hits = [m.grid.obstacle_hits() for m in maps]
-        reference = np.vstack(
-            [transform2d(m.offset, h[0]) for m, h in zip(maps, hits, strict=True)]
-        )
-        if len(target) < cfg.min_points or len(reference) < cfg.min_points:
+        if len(target) < cfg.min_points:
             return False
-        weights = np.concatenate([h[1] for h in hits])
-        lines = extract_lines(reference, self.cfg.region_grid.resolution, cfg.lines, weights)
-        ref = LineReference.from_lines(lines)
-        self.counts["revisit_searches"] += 1
-        found = correlative_search(reference, target, np.zeros(3), cfg.revisit)
-        extras.update(revisit_score=found.score, revisit_uniqueness=found.uniqueness)
-        if found.uniqueness > cfg.revisit_max_uniqueness:
+        pose = revisit_match(target, maps, cfg, extras)
+        if "revisit_score" in extras:
+            self.counts["revisit_searches"] += 1
+        if pose is None:
             return False
-        res = plicp(target, ref, found.pose, cfg.regional_plicp)
-        dist, _ = ref.tree.query(transform2d(res.pose, target))
-        inliers = float(np.mean(dist < cfg.revisit_match_distance))
-        refine = compose2d(inverse2d(found.pose), res.pose)
-        extras.update(revisit_inliers=inliers, revisit_m=float(np.linalg.norm(res.pose[:2])),
-                      revisit_deg=float(np.degrees(res.pose[2])),
-                      revisit_refine_m=float(np.linalg.norm(refine[:2])))  # fmt: skip
-        if (
-            inliers < cfg.revisit_min_inliers
-            or res.matches < cfg.regional_plicp.min_matches
-            or np.linalg.norm(refine[:2]) > 2 * cfg.revisit.resolution
-            or abs(np.degrees(refine[2])) > 2 * cfg.revisit.angle_step_deg
-        ):
-            return False
-        if (
-            np.linalg.norm(res.pose[:2]) < cfg.revisit_min_m
-            and abs(np.degrees(res.pose[2])) < cfg.revisit_min_deg
-        ):
-            return False  # within the second registration's basin: it runs as usual
+        res_pose = pose
         self.counts["reanchored"] += 1
-        extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res.pose[:2])),
-                      reanchor_deg=float(np.degrees(res.pose[2])))  # fmt: skip
-        self._move(res.pose)
+        extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res_pose[:2])),
+                      reanchor_deg=float(np.degrees(res_pose[2])))  # fmt: skip
+        self._move(res_pose)
         if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
             # a loop, not odometry: the reported pose does not jump; the keyframe of this
             # frame carries the match as a constraint on the nearest map's keyframe
-            self.feedback = compose2d(res.pose, self.feedback)
+            self.feedback = compose2d(res_pose, self.feedback)
             placed = compose2d(maps[0].offset, self.kf_map[maps[0].owner])
             z = compose2d(inverse2d(placed), self.pose)
             extras.update(anchor_kf=maps[0].owner, anchor_x=float(z[0]), anchor_y=float(z[1]),
@@ -483,7 +313,7 @@ class Dpcr2d:
     def _fuse_region(self, pts: np.ndarray, pose: np.ndarray) -> None:
         region = self.regions.get(self.region)
         if region is None:  # entering a new region: its map starts from the submap
-            region = _Region(OccupancyGrid(self.cfg.region_grid), owner=max(self.kf_id, 0))
+            region = Region(OccupancyGrid(self.cfg.region_grid), owner=max(self.kf_id, 0))
             for p, q in self.window:
                 region.grid.add_scan(transform2d(q, p), q[:2])
             self.regions[self.region] = region
@@ -509,12 +339,10 @@ class Dpcr2d:
         return np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
 
     # ------------------------------------------------------------------ contract
-    def process(self, scan: Scan) -> Odometry:
+    def _track(self, scan: Scan, pts: np.ndarray, timings: dict, extras: dict) -> np.ndarray:
+        """The first registration: the scan on the submap's lines from the prediction
+        (wheel odometry or constant velocity), the prediction kept when implausible."""
         cfg = self.cfg
-        t0 = time.perf_counter()
-        timings: dict = {}
-        extras: dict = {}
-        pts = self._points(scan)
         odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
         use = cfg.use_odometry
         predicted = (
@@ -524,27 +352,35 @@ class Dpcr2d:
         )
         from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
         self._odom = odom
-        pose = predicted
         if len(pts) < cfg.min_points:
             extras["skipped"] = f"too few points ({len(pts)})"
-        elif cfg.first_registration and self.submap_ref is not None and len(self.submap_ref):
-            t = time.perf_counter()
-            prior = {}
-            if from_wheels and cfg.odometry_prior:
-                prior = {"prior": predicted, "prior_info": self._prior_info(predicted)}
-            res = plicp(pts, self.submap_ref, predicted, cfg.plicp, **prior)
-            timings["first_ms"] = (time.perf_counter() - t) * 1e3
-            extras.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
-            if self._plausible(res, predicted):
-                pose = res.pose
-                if from_wheels:
-                    self._learn_odometry_noise(predicted, pose)
-            else:
-                self.counts["rejected"] += 1
-                extras["rejected"] = 1
-        previous = self.pose
-        self.pose = pose
+            return predicted
+        if not (cfg.first_registration and self.submap_ref is not None and len(self.submap_ref)):
+            return predicted
         t = time.perf_counter()
+        prior = {}
+        if from_wheels and cfg.odometry_prior:
+            prior = {"prior": predicted, "prior_info": self._prior_info(predicted)}
+        start = predicted
+        if not from_wheels and self.frame <= cfg.start_frames:  # the motion is unknown
+            start = correlative_search(self.submap_ref.points, pts, predicted, cfg.start).pose
+        res = plicp(pts, self.submap_ref, start, cfg.plicp, **prior)
+        if from_wheels and self._plausible(res, predicted):
+            res = check_wheels(pts, self.submap_ref, predicted, res, prior, cfg, extras)
+            self.counts["wheel_kept"] += int(extras.get("wheel_kept", 0))
+        timings["first_ms"] = (time.perf_counter() - t) * 1e3
+        extras.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
+        if not self._plausible(res, predicted):
+            self.counts["rejected"] += 1
+            extras["rejected"] = 1
+            return predicted
+        if from_wheels:
+            self._learn_odometry_noise(predicted, res.pose)
+        return res.pose
+
+    def _add_to_submap(self, pts: np.ndarray) -> None:
+        """The scan joins the sliding submap (the oldest leaves it); lines refreshed every K1."""
+        cfg, pose = self.cfg, self.pose
         if len(pts) >= cfg.min_points:
             self.window.append((pts, pose.copy()))
             self.submap.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
@@ -555,9 +391,14 @@ class Dpcr2d:
                 )
         if self.frame - self.submap_refreshed_at >= cfg.k1 or self.submap_ref is None:
             self._refresh_submap_lines()
-        timings["submap_ms"] = (time.perf_counter() - t) * 1e3
 
-        # regions: which one the robot is in; entering another one is a keyframe
+    def _regions_step(
+        self, pts: np.ndarray, previous: np.ndarray, timings: dict, extras: dict
+    ) -> tuple[bool, int, int | None, bool]:
+        """Which region the robot is in (the revisit search on entering one), the
+        regional map fused, the second registration; returns (keyframe?, region, the
+        region left, entered another region?)."""
+        cfg = self.cfg
         self.path += float(np.linalg.norm(self.pose[:2] - previous[:2]))
         region = int(self.division.region_of(self.pose[:2][None])[0])
         entered = region != self.region
@@ -576,8 +417,7 @@ class Dpcr2d:
                 region = int(self.division.region_of(self.pose[:2][None])[0])
                 entered = region != left
         self.region = region
-        visits = cfg.visit_scans > 0
-        if visits:
+        if cfg.visit_scans > 0:
             is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0
         else:
             is_kf = self.frame == 0 or entered or "anchor_kf" in extras
@@ -589,35 +429,55 @@ class Dpcr2d:
         due = self.frame % cfg.second_every == 0 or (entered and region in self.regions)
         if cfg.second_registration and due and not reanchored:
             self._second_registration(timings)
+        return is_kf, region, left, entered
+
+    def _region_cloud(self, left: int | None, extras: dict, region: int) -> np.ndarray | None:
+        """A region keyframe's cloud: the map of the region just left (or the visit with
+        ``visit_clouds``) in the keyframe's frame; None without a region event."""
+        extras.update(region=region, region_left=-1 if left is None else left)
+        cloud = None
+        if left is not None and left in self.regions:
+            if self._visit_clouds():
+                obs = self.visit.obstacles() if self.visit is not None else np.zeros((0, 2))
+            else:
+                left_region = self.regions[left]
+                obs = transform2d(left_region.offset, left_region.grid.obstacles())
+            local = transform2d(inverse2d(self.pose), obs)
+            cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
+        self.visit = None  # the next visit starts after the graph update
+        self._moved_since_kf = np.zeros(3)
+        return cloud
+
+    def process(self, scan: Scan) -> Odometry:
+        t0 = time.perf_counter()
+        timings: dict = {}
+        extras: dict = {}
+        pts = self._points(scan)
+        pose = self._track(scan, pts, timings, extras)
+        previous, self.pose = self.pose, pose
+        t = time.perf_counter()
+        self._add_to_submap(pts)
+        timings["submap_ms"] = (time.perf_counter() - t) * 1e3
+        t = time.perf_counter()
+        is_kf, region, left, entered = self._regions_step(pts, previous, timings, extras)
         timings["region_ms"] = (time.perf_counter() - t) * 1e3
 
         reported = compose2d(inverse2d(self.feedback), self.pose)
         T = pose2_to_matrix(reported)
         relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
         cloud = None
+        visits = self.cfg.visit_scans > 0
         if visits:
             self._recent.append((pts, reported))
             self._since_kf += 1
         if is_kf and visits:
             cloud = self._visit_cloud(reported)
             extras.update(region=region, region_left=-1, visit=1)
+        elif is_kf:  # a re-anchor inside a region: no region event
+            cloud = self._region_cloud(left if entered else None, extras, region)
+        if is_kf:
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
-        elif is_kf:
-            left = left if entered else None  # a re-anchor inside a region: no region event
-            extras.update(region=region, region_left=-1 if left is None else left)
-            if left is not None and left in self.regions:
-                if self._visit_clouds():
-                    obs = self.visit.obstacles() if self.visit is not None else np.zeros((0, 2))
-                else:
-                    left_region = self.regions[left]
-                    obs = transform2d(left_region.offset, left_region.grid.obstacles())
-                local = transform2d(inverse2d(self.pose), obs)
-                cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
-            self.visit = None  # the next visit starts after the graph update
-            self.pose_kf = reported
-            self.kf_map.append(self.pose.copy())
-            self._moved_since_kf = np.zeros(3)
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1
@@ -629,7 +489,7 @@ class Dpcr2d:
             pose=T,
             is_keyframe=is_kf,
             relative=relative,
-            info=planar_information(relative),
+            info=self._info_scale * planar_information(relative),
             cloud=cloud,
             extras=extras,
         )

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -32,6 +32,7 @@ from slam.mapping.grid2d import (
     transform2d,
     wrap,
 )
+from slam.registration.correlative2d import CorrelativeConfig, correlative_search
 from slam.types import Odometry, Scan
 
 
@@ -46,7 +47,10 @@ class Icp2dConfig:
     residuals otherwise); voxel (m): the reference keeps one point per cell of this size;
     use_odometry: predict from ``Scan.odom`` when present; max_range (m); min_points:
     fewest points of a usable scan; max_step / max_step_deg (m, deg): a registration
-    moving the pose further than this from the prediction is rejected."""
+    moving the pose further than this from the prediction is rejected; start_frames:
+    without wheel odometry the first registrations of these frames start from a
+    correlative search of the motion (``start``: +-0.5 m, +-20 deg around the
+    constant-velocity prediction) instead of assuming rest."""
 
     submap_scans: int = 10
     keyframe_every: int = 5
@@ -62,6 +66,10 @@ class Icp2dConfig:
     min_points: int = 30
     max_step: float = 0.5
     max_step_deg: float = 20.0
+    start_frames: int = 3
+    start: CorrelativeConfig = field(
+        default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
+    )
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.keyframe_every < 1 or self.max_iterations < 1:
@@ -207,6 +215,13 @@ class Icp2d:
             and abs(np.degrees(step[2])) <= self.cfg.max_step_deg
         )
 
+    def _start(self, ref: np.ndarray, pts: np.ndarray, predicted: np.ndarray, blind: bool):
+        """Where the registration starts: the prediction, or without wheels (``blind``) on
+        the first ``start_frames`` a correlative search of the motion around it."""
+        if blind and self.frame <= self.cfg.start_frames:
+            return correlative_search(ref, pts, predicted, self.cfg.start).pose
+        return predicted
+
     def process(self, scan: Scan) -> Odometry:
         cfg = self.cfg
         t0 = time.perf_counter()
@@ -226,7 +241,7 @@ class Icp2d:
         elif self.window:
             t = time.perf_counter()
             ref = np.concatenate(list(self.window))
-            res = icp2d(pts, ref, predicted, cfg)
+            res = icp2d(pts, ref, self._start(ref, pts, predicted, odom is None or not use), cfg)
             extras.update(
                 icp_ms=(time.perf_counter() - t) * 1e3,
                 rmse=res.rmse,

@@ -165,13 +165,7 @@ class RegionEdgePlugin:
         T_k = graph.estimate(kf.id)
         factors = []
         target = np.asarray(cloud, dtype=np.float64)[:, :2]
-        candidates = []
-        for j, region_j in self._regions.items():
-            if j >= kf.id - cfg.skip_recent:
-                continue
-            dist = float(np.linalg.norm(self.division.centre(region_j) - centre))
-            if dist <= cfg.region_width * cfg.alpha:
-                candidates.append((dist, j, region_j))
+        candidates = self._candidates(kf.id, centre)
         wide_left = cfg.wide_per_keyframe if cfg.wide_search else 0
         for _, j, region_j in sorted(candidates):
             ref = self._reference(graph, j)
@@ -201,21 +195,35 @@ class RegionEdgePlugin:
             )  # fmt: skip
             if not accepted:
                 continue
-            info = np.zeros((6, 6))
-            idx = [3, 4, 2]  # gtsam Pose3 tangent: (rx, ry, rz, tx, ty, tz)
-            info[np.ix_(idx, idx)] = res.info
-            info[0, 0] = info[1, 1] = info[5, 5] = 1e6  # planar: z, roll, pitch held
-            noise = robust_noise(
-                gtsam.noiseModel.Gaussian.Information(0.5 * (info + info.T)),
-                cfg.robust,
-                cfg.robust_param,
-            )
-            factors.append(
-                gtsam.BetweenFactorPose3(
-                    key(j), key(kf.id), pose3(pose2_to_matrix(res.pose)), noise
-                )
-            )
+            factors.append(self._edge_factor(j, kf.id, res))
         return anchors + factors
+
+    def _edge_factor(self, j: int, k: int, res: PlicpResult) -> gtsam.BetweenFactorPose3:
+        """The planar edge j -> k of a registration (its information, robust kernel)."""
+        cfg = self.config
+        info = np.zeros((6, 6))
+        idx = [3, 4, 2]  # gtsam Pose3 tangent: (rx, ry, rz, tx, ty, tz)
+        info[np.ix_(idx, idx)] = res.info
+        info[0, 0] = info[1, 1] = info[5, 5] = 1e6  # planar: z, roll, pitch held
+        noise = robust_noise(
+            gtsam.noiseModel.Gaussian.Information(0.5 * (info + info.T)),
+            cfg.robust,
+            cfg.robust_param,
+        )
+        return gtsam.BetweenFactorPose3(key(j), key(k), pose3(pose2_to_matrix(res.pose)), noise)
+
+    def _candidates(self, kf_id: int, centre: np.ndarray) -> list[tuple[float, int, int]]:
+        """(centre distance, keyframe, region) of the earlier region keyframes within
+        RegDis <= S * alpha (eq. (10)), the last ``skip_recent`` left out."""
+        cfg = self.config
+        out = []
+        for j, region_j in self._regions.items():
+            if j >= kf_id - cfg.skip_recent:
+                continue
+            dist = float(np.linalg.norm(self.division.centre(region_j) - centre))
+            if dist <= cfg.region_width * cfg.alpha:
+                out.append((dist, j, region_j))
+        return out
 
     def _visit(self, kf: Keyframe, graph: GraphView) -> list[gtsam.BetweenFactorPose3]:
         """Loop edges of a visit keyframe (``slam.visit_graph.VisitLoops``): its cloud

@@ -1,4 +1,4 @@
-"""A visit graph for 2D laser SLAM (issue 14, "walls single"): vertices per visit, not
+"""A visit graph for 2D laser SLAM: vertices per visit, not
 per region (a submap of a fixed number of scans, as in Cartographer), edges only between
 measurement-only clouds, a wide loop search, and the final poses of every scan from the
 optimised visit poses.
@@ -32,6 +32,7 @@ import numpy as np
 
 from slam.errors import ConfigError
 from slam.features.lines2d import LineConfig, extract_lines
+from slam.graph2d_gate import optimize_gated
 from slam.mapping.grid2d import (
     GridConfig,
     OccupancyGrid,
@@ -66,7 +67,9 @@ class VisitGraphConfig:
     the nearest ``refine_refs``; refine_max_m / refine_max_deg: a registration moving
     the visit farther is dropped; refine_min_inliers: share of the overlapping points
     within ``inlier_m`` after it; refine_sigma_m / refine_sigma_deg: noise of the
-    registration, split over the reference visits (an edge to each, sigma * sqrt(n))."""
+    registration, split over the reference visits (an edge to each, sigma * sqrt(n));
+    gate_sigma / gate_rounds: loop edges beyond this many claimed sigmas at the result are
+    switched off and the graph re-optimised (``slam.graph2d_gate``; 0: Cauchy only)."""
 
     visit_scans: int = 30
     pad: int = 15
@@ -102,6 +105,8 @@ class VisitGraphConfig:
     refine_min_inliers: float = 0.6
     refine_sigma_m: float = 0.05
     refine_sigma_deg: float = 1.0
+    gate_sigma: float = 4.0
+    gate_rounds: int = 3
 
     def __post_init__(self) -> None:
         if self.visit_scans < 1 or self.pad < 0 or self.max_candidates < 0:
@@ -182,16 +187,7 @@ class VisitLoops:
             transform2d(compose2d(inv, self.fe[k]), self.clouds[k])
             for k in self.order[max(0, pos - r) : hi + 1]
         ]
-        pts = np.vstack(parts)
-        ref = None
-        if len(pts) >= 20:
-            cells = np.floor(pts / self.cfg.resolution).astype(np.int64)
-            _, inverse = np.unique(cells, axis=0, return_inverse=True)
-            inverse = inverse.ravel()
-            count = np.bincount(inverse)
-            mean = np.column_stack([np.bincount(inverse, pts[:, d]) / count for d in range(2)])
-            lines = extract_lines(mean, self.cfg.resolution, LineConfig(), count.astype(float))
-            ref = LineReference.from_lines(lines)
+        ref, _ = line_reference(np.vstack(parts), self.cfg.resolution)
         self._refs[j] = (hi, ref)
         return ref
 
@@ -259,6 +255,21 @@ class VisitLoops:
         return event(inl, res.pose, True, "ok"), res.pose
 
 
+def line_reference(pts: np.ndarray, resolution: float) -> tuple[LineReference | None, np.ndarray]:
+    """Lines of a cloud's cell means (``resolution``) as a PLICP reference (None when too
+    small), and for each of its points (one per cell) the index of a point of ``pts`` in
+    that cell."""
+    if len(pts) < 20:
+        return None, np.zeros(0, dtype=np.int64)
+    cells = np.floor(pts / resolution).astype(np.int64)
+    _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    count = np.bincount(inverse)
+    mean = np.column_stack([np.bincount(inverse, pts[:, d]) / count for d in range(2)])
+    lines = extract_lines(mean, resolution, LineConfig(), count.astype(float))
+    return LineReference.from_lines(lines), first
+
+
 def odometry_sigmas(cfg: VisitGraphConfig, rel: np.ndarray) -> np.ndarray:
     """(sigma_x, sigma_y, sigma_theta) of the front end's relative pose ``rel`` between
     two visits."""
@@ -279,7 +290,8 @@ class VisitGraph:
     def __init__(self, cfg: VisitGraphConfig | None = None):
         self.cfg = cfg or VisitGraphConfig()
         self.loop_search = VisitLoops(self.cfg)
-        self.graph = gtsam.NonlinearFactorGraph()
+        self.factors: list = []
+        self.gate = None  # the last gated optimisation (slam.graph2d_gate.GateResult)
         self.loops: list[tuple[int, int, np.ndarray]] = []
         self.optimize_ms: list[float] = []
         self._estimate: list[np.ndarray] = []
@@ -294,16 +306,31 @@ class VisitGraph:
     def search_ms(self) -> list[float]:
         return self.loop_search.search_ms
 
-    def _optimize(self, graph: gtsam.NonlinearFactorGraph | None = None) -> None:
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self.factors:
+            graph.add(f)
+        return graph
+
+    def _optimize(self, extra: list | None = None) -> None:
+        """Levenberg-Marquardt on the odometry and loop edges (and ``extra`` ones), loop
+        edges beyond ``gate_sigma`` switched off (``slam.graph2d_gate``)."""
         t = time.perf_counter()
-        graph = self.graph if graph is None else graph
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         params.setRelativeErrorTol(1e-6)
         start = gtsam.Values()
         for i, p in enumerate(self._estimate):
             start.insert(i, gtsam.Pose2(*p))
-        result = gtsam.LevenbergMarquardtOptimizer(graph, start, params).optimize()
+        self.gate = optimize_gated(
+            self.factors + list(extra or []),
+            start,
+            lambda g, v: gtsam.LevenbergMarquardtOptimizer(g, v, params).optimize(),
+            self.cfg.gate_sigma,
+            self.cfg.gate_rounds,
+        )
+        result = self.gate.values
         self._estimate = [
             np.array([result.atPose2(i).x(), result.atPose2(i).y(), result.atPose2(i).theta()])
             for i in range(len(self._estimate))
@@ -317,12 +344,12 @@ class VisitGraph:
         fe_pose = np.asarray(fe_pose, dtype=np.float64)
         if i == 0:
             prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))
-            self.graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*fe_pose), prior))
+            self.factors.append(gtsam.PriorFactorPose2(0, gtsam.Pose2(*fe_pose), prior))
             self._estimate.append(fe_pose.copy())
         else:
             rel = compose2d(inverse2d(self._fe[-1]), fe_pose)
             noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(self.cfg, rel))
-            self.graph.add(gtsam.BetweenFactorPose2(i - 1, i, gtsam.Pose2(*rel), noise))
+            self.factors.append(gtsam.BetweenFactorPose2(i - 1, i, gtsam.Pose2(*rel), noise))
             self._estimate.append(compose2d(self._estimate[-1], rel))
         self._fe.append(fe_pose)
         self.loop_search.add(i, fe_pose, cloud)
@@ -332,7 +359,7 @@ class VisitGraph:
             gtsam.noiseModel.Diagonal.Sigmas(loop_sigmas(self.cfg)),
         )
         for j, k, z in edges:
-            self.graph.add(gtsam.BetweenFactorPose2(j, k, gtsam.Pose2(*z), loop_noise))
+            self.factors.append(gtsam.BetweenFactorPose2(j, k, gtsam.Pose2(*z), loop_noise))
             self.loops.append((j, k, z))
         if edges:
             self._optimize()
@@ -342,6 +369,8 @@ class VisitGraph:
         if self.loops:
             self._optimize()
         if self.cfg.refine_rounds:
+            from slam.visit_refine import refine_visits
+
             self.refine_stats = refine_visits(self)
 
     def estimates(self) -> np.ndarray:
@@ -350,131 +379,6 @@ class VisitGraph:
     @property
     def fe(self) -> list[np.ndarray]:
         return self._fe
-
-
-@dataclass
-class VisitOffset:
-    """One visit registered on the others near it (``visit_offsets``): its correction
-    (x, y, theta in its frame: where its cloud sits best on theirs), the reference visits
-    its inliers fell on, and whether the registration was accepted."""
-
-    visit: int
-    correction: np.ndarray
-    refs: np.ndarray
-    accepted: bool
-
-
-def visit_offsets(
-    X: np.ndarray, clouds: list[np.ndarray], path: np.ndarray, cfg: VisitGraphConfig
-) -> list[VisitOffset]:
-    """Every visit's cloud (``clouds[i]``, its vertex frame) registered by PLICP, from
-    where it is (vertex poses ``X`` (V, 3)), against the clouds of the other visits near
-    it (vertex within ``refine_radius``, at least ``min_path`` of ``path`` away, the
-    nearest ``refine_refs``) fused at their poses: how far each visit lies from the
-    others where they see the same walls - a wall drawn twice 10 cm apart moves a visit
-    by ~10 cm, however many hits are fused (the grid measures grow with them). Accepted
-    when within ``refine_max_m`` / ``refine_max_deg`` and ``refine_min_inliers`` of its
-    overlapping points (within ``overlap_m``) lie within ``inlier_m`` after it."""
-    c = cfg
-    X = np.asarray(X, dtype=np.float64)
-    path = np.asarray(path, dtype=np.float64)
-    world = [transform2d(X[i], clouds[i]) for i in range(len(X))]
-    out: list[VisitOffset] = []
-    for i in range(len(X)):
-        target = clouds[i]
-        if len(target) < c.min_overlap:
-            continue
-        d = np.linalg.norm(X[:, :2] - X[i, :2], axis=1)
-        ok = (np.abs(path - path[i]) >= c.min_path) & (d <= c.refine_radius)
-        refs = [j for j in np.argsort(d) if ok[j]][: c.refine_refs]
-        if not refs:
-            continue
-        inv = inverse2d(X[i])
-        pts = np.vstack([transform2d(inv, world[j]) for j in refs])
-        owner = np.concatenate([np.full(len(world[j]), j) for j in refs])
-        ref, first = _line_reference(pts, c.resolution)
-        if ref is None:
-            continue
-        corr = plicp(target, ref, np.zeros(3), c.plicp).pose
-        none = np.zeros(0, dtype=np.int64)
-        if np.hypot(corr[0], corr[1]) > c.refine_max_m or abs(np.degrees(corr[2])) > (
-            c.refine_max_deg
-        ):
-            out.append(VisitOffset(i, corr, none, False))
-            continue
-        dist, near_idx = ref.tree.query(transform2d(corr, target), distance_upper_bound=c.overlap_m)
-        near = np.isfinite(dist)
-        if near.sum() < c.min_overlap or np.mean(dist[near] < c.inlier_m) < c.refine_min_inliers:
-            out.append(VisitOffset(i, corr, none, False))
-            continue
-        # the reference visits the inliers fell on (a cell counts for its first point's)
-        good = near & (dist < c.inlier_m)
-        js, n = np.unique(owner[first][near_idx[good]], return_counts=True)
-        out.append(VisitOffset(i, corr, js[n >= max(10, 0.1 * n.max())], True))
-    return out
-
-
-def offset_stats(offsets: list[VisitOffset]) -> dict:
-    """Visits registered / accepted and the accepted corrections' median / p90 / max (m)
-    and median (deg)."""
-    acc = [o for o in offsets if o.accepted]
-    m = np.array([np.hypot(*o.correction[:2]) for o in acc]) if acc else np.zeros(1)
-    deg = np.array([abs(np.degrees(o.correction[2])) for o in acc]) if acc else np.zeros(1)
-    return {"registered": len(offsets), "accepted": len(acc), "median_m": float(np.median(m)),
-            "p90_m": float(np.percentile(m, 90)), "max_m": float(m.max()),
-            "median_deg": float(np.median(deg))}  # fmt: skip
-
-
-def refine_visits(vg: VisitGraph, rounds: int | None = None) -> list[dict]:
-    """The final multi-view refinement (Cartographer's final optimisation in spirit): each
-    round, every visit registered on the others near it at their current optimised poses
-    (``visit_offsets``); an accepted registration becomes an edge to each reference visit
-    its inliers fell on (Cauchy kernel, the registration's noise split over them, sigma *
-    sqrt(n)), and the graph (odometry and loop edges, and this round's edges: the last
-    round's are dropped, they measured the poses before) is re-optimised. Returns per
-    round ``offset_stats`` of the registrations (before that round's optimisation)."""
-    c = vg.cfg
-    rounds = c.refine_rounds if rounds is None else rounds
-    loops = vg.loop_search
-    ids = range(len(vg.fe))
-    path = np.array([loops.path[i] for i in ids])
-    clouds = [loops.clouds[i] for i in ids]
-    sig = np.array([c.refine_sigma_m, c.refine_sigma_m, np.radians(c.refine_sigma_deg)])
-    stats: list[dict] = []
-    for _ in range(rounds):
-        X = vg.estimates()
-        offsets = visit_offsets(X, clouds, path, c)
-        graph = gtsam.NonlinearFactorGraph()
-        graph.push_back(vg.graph)
-        for o in offsets:
-            if not o.accepted or not len(o.refs):
-                continue
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(c.robust_param),
-                gtsam.noiseModel.Diagonal.Sigmas(sig * np.sqrt(len(o.refs))),
-            )
-            Xi = compose2d(X[o.visit], o.correction)
-            for j in o.refs:
-                z = compose2d(inverse2d(X[int(j)]), Xi)
-                graph.add(gtsam.BetweenFactorPose2(int(j), o.visit, gtsam.Pose2(*z), noise))
-        vg._optimize(graph)
-        stats.append(offset_stats(offsets))
-    return stats
-
-
-def _line_reference(pts: np.ndarray, resolution: float) -> tuple[LineReference | None, np.ndarray]:
-    """Lines of a cloud's cell means (``resolution``) as a PLICP reference (None when too
-    small), and for each of its points (one per cell) the index of a point of ``pts`` in
-    that cell."""
-    if len(pts) < 20:
-        return None, np.zeros(0, dtype=np.int64)
-    cells = np.floor(pts / resolution).astype(np.int64)
-    _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
-    count = np.bincount(inverse)
-    mean = np.column_stack([np.bincount(inverse, pts[:, d]) / count for d in range(2)])
-    lines = extract_lines(mean, resolution, LineConfig(), count.astype(float))
-    return LineReference.from_lines(lines), first
 
 
 def run_visit_graph(
@@ -522,11 +426,8 @@ def scan_poses(
 __all__ = [
     "VisitGraph",
     "VisitGraphConfig",
-    "VisitOffset",
-    "offset_stats",
-    "refine_visits",
+    "line_reference",
     "run_visit_graph",
     "vertex_scans",
     "visit_cloud",
-    "visit_offsets",
 ]

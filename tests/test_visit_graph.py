@@ -1,4 +1,4 @@
-"""The visit graph (issue 14): vertices per visit, loop edges between measurement-only
+"""The visit graph: vertices per visit, loop edges between measurement-only
 visit clouds found by the wide correlative search, and its use through ``dpcr2d``
 (``visit_scans``) and the region-edges plugin."""
 
@@ -17,12 +17,11 @@ from slam.sim.floorplan2d import simulate2d
 from slam.types import Keyframe, Scan
 from slam.visit_graph import (
     VisitGraphConfig,
-    offset_stats,
     run_visit_graph,
     vertex_scans,
     visit_cloud,
-    visit_offsets,
 )
+from slam.visit_refine import offset_stats, visit_offsets
 
 
 @pytest.fixture(scope="module")

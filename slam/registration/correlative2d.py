@@ -89,6 +89,8 @@ def correlative_search(
         wide = replace(cfg, resolution=f * cfg.resolution, angle_step_deg=f * cfg.angle_step_deg,
                        coarse=1)  # fmt: skip
         first = correlative_search(reference, target, guess, wide)
+        if first.score <= 0.0:  # nothing of the target near the reference in the window
+            return first
         fine = replace(cfg, max_shift=f * cfg.resolution, max_angle_deg=f * cfg.angle_step_deg,
                        coarse=1)  # fmt: skip
         best = correlative_search(reference, target, first.pose, fine)

@@ -140,6 +140,25 @@ def _residuals(
     return idx, n, r, ok
 
 
+def inlier_share(
+    target: np.ndarray, ref: LineReference, pose: np.ndarray, inlier_m: float = 0.05
+) -> float:
+    """Share of ``target`` points (N, 2) that lie, moved by ``pose``, within ``inlier_m``
+    of the reference: of the line feature of their nearest reference point, or of that
+    point when it is on no line. How well a registration fits, comparable between two
+    candidate poses of the same scan on the same reference."""
+    if not len(target) or not len(ref):
+        return 0.0
+    moved = transform2d(pose, np.asarray(target, dtype=np.float64))
+    dist, j = ref.tree.query(moved, k=1, distance_upper_bound=4 * inlier_m)
+    ok = np.isfinite(dist)
+    d = ref.directions[j[ok]]
+    off = moved[ok] - ref.anchors[j[ok]]
+    line = np.abs(off[:, 0] * -d[:, 1] + off[:, 1] * d[:, 0])
+    r = np.where(np.isfinite(d[:, 0]), line, dist[ok])
+    return float(np.sum(r < inlier_m) / len(target))
+
+
 def plicp(
     target: np.ndarray,
     ref: LineReference,

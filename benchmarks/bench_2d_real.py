@@ -1,0 +1,151 @@
+"""The 2D recipes on the real laser logs, scored by relations (Kuemmerle et al. 2009).
+
+For every real CARMEN log (Intel, FR079, MIT-CSAIL in ``../shared/data/laser2d``) the
+trajectories of ``icp2d``, ``dpcr2d``'s front end alone (``odometry.tum``), ``dpcr2d``
+(the visit graph) and ``dpcr2d_regions`` (the paper's region graph) are scored against
+
+- the log's self-consistency relations (``slam.eval.self_relations``: scan pairs 0.5 /
+  1 / 2 m of path apart registered alone and verified, made once per log and prefix,
+  cached as ``<out>/<log>_<frames>.relations``): a graph that worsens the local geometry
+  the scans show is caught on every log;
+- published relations where given (``--relations intel=FILE``, Freiburg format).
+
+Printed: per log and trajectory the relation count and translation mean / std / median /
+p90 / max / share above 0.2 m, rotation mean / p90, and the CPU time per scan of the run.
+
+    .venv/bin/python benchmarks/bench_2d_real.py --out runs/bench_2d_real \
+        [--logs intel fr079 mit-csail] [--frames 3000] [--methods icp2d dpcr2d dpcr2d_regions]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slam.config import load_config
+from slam.eval.metrics import read_trajectory
+from slam.eval.relations import read_relations, relation_errors, write_relations
+from slam.eval.self_relations import SelfRelationConfig, self_relations
+from slam.io.carmen import CarmenSource
+from slam.run import run_one
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "laser2d"
+LOGS = ("intel", "fr079", "mit-csail")
+METHODS = ("icp2d", "dpcr2d", "dpcr2d_regions")
+
+
+def load_log(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """stamps, scans ((N, 2) within 0.05-30 m) and wheel odometry (K, 3) of a CARMEN log."""
+    stamps, scans, odom = [], [], []
+    for n, scan in enumerate(CarmenSource(log)):
+        if frames is not None and n >= frames:
+            break
+        if not hasattr(scan, "xyz"):  # a damaged line
+            continue
+        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
+        r = np.linalg.norm(xy, axis=1)
+        scans.append(xy[(r > 0.05) & (r < 30.0)])
+        stamps.append(float(scan.stamp))
+        odom.append(np.asarray(scan.odom, dtype=np.float64))
+    return np.array(stamps), scans, np.array(odom)
+
+
+def log_relations(log: Path, frames: int | None, out: Path) -> tuple[Path, dict]:
+    """The log's self-consistency relations (made once, then read from the cache)."""
+    path = out / f"{log.name.split('.')[0]}_{frames or 'all'}.relations"
+    meta = path.with_suffix(".json")
+    if path.is_file() and meta.is_file():
+        return path, json.loads(meta.read_text())
+    stamps, scans, odom = load_log(log, frames)
+    t = time.process_time()
+    rel, stats = self_relations(stamps, scans, odom, SelfRelationConfig())
+    info = {"scans": len(stamps), "pairs": stats.pairs, "kept": stats.kept,
+            "rejected": stats.rejected, "cpu_s": time.process_time() - t}  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    write_relations(path, rel, header=f"self-consistency relations of {log.name}: {info}")
+    meta.write_text(json.dumps(info, indent=2))
+    return path, info
+
+
+def score(traj: Path, relations: Path) -> dict:
+    stamps, poses = read_trajectory(traj)
+    summary = relation_errors(stamps, poses, read_relations(relations), max_dt=1e-3).summary()
+    summary["n"] = summary.pop("relations")
+    return summary
+
+
+def run_method(method: str, log: Path, out: Path, frames: int | None, sets: list[str]) -> dict:
+    """Run a recipe (reused when ``out`` holds a finished run); CPU ms per scan."""
+    if not (out / "metrics.json").is_file():
+        cfg = load_config(method, sets)
+        cfg.source.max_frames = frames
+        t = time.process_time()
+        summary = run_one(log, cfg, out, quiet=True)
+        cpu = (time.process_time() - t) / max(summary["frames"], 1) * 1e3
+        (out / "bench.json").write_text(json.dumps({"cpu_ms_per_scan": cpu}))
+    bench = out / "bench.json"
+    return json.loads(bench.read_text()) if bench.is_file() else {}
+
+
+def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> list[dict]:
+    path = Path(args.data) / f"{log}.clf.bz2"
+    base = Path(args.out)
+    rel, info = log_relations(path, args.frames, base)
+    print(f"{log}: {info['kept']} self relations of {info['pairs']} pairs ({info['rejected']})")
+    sets = {"published": published[log]} if log in published else {}
+    sets["self"] = rel
+    rows = []
+    for method in args.methods:
+        run_dir = base / log / method
+        bench = run_method(method, path, run_dir, args.frames, args.set or [])
+        trajs = [(method, run_dir / "trajectory.tum")]
+        if method.startswith("dpcr2d") and not any(r["trajectory"] == "dpcr2d front end"
+                                                   for r in rows):  # fmt: skip
+            trajs.insert(0, ("dpcr2d front end", run_dir / "odometry.tum"))
+        for name, traj in trajs:
+            for kind, rel_path in sets.items():
+                rows.append({"log": log, "trajectory": name, "relations": kind, **bench,
+                             **score(traj, rel_path)})  # fmt: skip
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    head = ("| log | trajectory | relations | n | mean (m) | std | median | p90 | max | > 0.2 m "
+            "| rot mean (deg) | rot p90 | CPU ms/scan |")  # fmt: skip
+    lines = [head, "|" + "---|" * 13]
+    for r in rows:
+        t, q = r["trans_m"], r["rot_deg"]
+        lines.append(
+            f"| {r['log']} | {r['trajectory']} | {r['relations']} | {r['n']} | "
+            f"{t['mean']:.4f} | {t['std']:.4f} | {t['median']:.4f} | {t['p90']:.4f} | "
+            f"{t['max']:.3f} | {100 * t['share_above_0.2m']:.1f} % | {q['mean']:.3f} | "
+            f"{q['p90']:.3f} | {r.get('cpu_ms_per_scan', float('nan')):.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="runs/bench_2d_real")
+    ap.add_argument("--logs", nargs="+", default=list(LOGS), choices=LOGS)
+    ap.add_argument("--data", default=str(DATA), help="folder of the CARMEN logs")
+    ap.add_argument("--frames", type=int, help="first N scans of each log (default: all)")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS))
+    ap.add_argument("--relations", nargs="*", default=[], help="LOG=FILE published relations")
+    ap.add_argument("--set", action="append", help="config override for every method")
+    args = ap.parse_args(argv)
+    published = {k: Path(v) for k, v in (item.split("=", 1) for item in args.relations)}
+    rows = []
+    for log in args.logs:
+        rows.extend(rows_of(log, args, published))
+    print(table(rows))
+    out = Path(args.out)
+    (out / f"bench_{'_'.join(args.logs)}.json").write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()

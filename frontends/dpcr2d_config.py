@@ -1,0 +1,145 @@
+"""Settings of the DPCR-SLAM front end (``frontends.dpcr2d``, paper 003)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from slam.errors import ConfigError
+from slam.features.lines2d import LineConfig
+from slam.mapping.grid2d import GridConfig
+from slam.registration.correlative2d import CorrelativeConfig
+from slam.registration.plicp import PlicpConfig
+
+
+def _submap_grid() -> GridConfig:
+    # hits only over a sliding window: a cell is an obstacle once two scans hit it
+    return GridConfig(hit=1.0, miss=-1.0, clamp=300.0, occupied=0.5)
+
+
+@dataclass
+class Dpcr2dConfig:
+    """DPCR-SLAM settings (paper 003).
+
+    submap_scans: N, the scans of the submap; k1 / k2: frames between line refreshes of
+    the submap / regional map (K2 > K1); region_width: S (m; the paper's study
+    recommends 4 m); second_every: frames between second registrations;
+    first_registration / second_registration: switch either off (the ablation; both off
+    = wheel odometry with maps); use_odometry: predict from the wheel odometry when the
+    input has it (``Scan.odom``; else constant velocity) - along a corridor whose ends
+    the laser does not see, nothing else says how far the robot went; odometry_prior:
+    the wheel-odometry increment also enters the first registration's solve as a
+    weighted prior (``slam.registration.plicp``; noise model
+    ``slam.mapping.grid2d.planar_information`` of the step), not only as its start;
+    max_range (m):
+    scan points beyond are dropped; min_points: fewest points of a usable scan;
+    max_step (m, deg): a registration moving the pose further than this from the
+    prediction is rejected (the prediction is kept); submap_grid / region_grid: the two
+    grids (5 cm cells).
+
+    revisit_search: on entering a region, the submap is searched over the wide window
+    ``revisit`` (rotations and shifts, ``slam.registration.correlative2d``) on the maps
+    of the regions around (centres within ``revisit_radius`` m, the nearest
+    ``revisit_regions``) that the robot left ``revisit_path`` m ago or more (drawn before
+    the drift since; the drifted pose may well fall in a region never mapped), before the
+    second registration, which only converges within ~0.3 m / a few degrees: real
+    revisits come back 15 deg / metres off. The match is taken when it is unique (second
+    peak / best <= ``revisit_max_uniqueness``) and, after PLICP, ``revisit_min_inliers``
+    of the submap's obstacle cells lie within ``revisit_match_distance`` of the map; the
+    robot and the submap then move onto the region's map (re-anchored), so that the scans
+    that follow draw its walls where they already are. A correction within
+    ``revisit_min_m`` and ``revisit_min_deg`` is left to the second registration.
+
+    graph_feedback: after each region-graph optimisation (the pipeline's
+    ``on_graph_update``) the robot, its submap and every regional map move to where the
+    graph put them: a regional map is placed by the optimised pose of the keyframe that
+    opened it (a per-region offset, the grid itself is never resampled), the robot by that
+    of the last keyframe; scans that follow are drawn, and registered, in the graph's
+    frame. The reported odometry stays continuous (the moves are not in it: the graph made
+    them). visit_clouds (with graph_feedback): a keyframe's cloud, what the region edges
+    register, is the visit just ended (the submap at its start and every scan since, in
+    the front end's frame) instead of the regional map: a revisited map's older part lies
+    where the graph put it, and an edge from it would measure the graph's own estimate.
+    reanchor_loops (with graph_feedback): a re-anchor is an edge of the region graph
+    (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
+
+    visit_scans (0: off): the visit graph (``slam.visit_graph``): a keyframe at
+    frame 0 and at the last frame of every ``visit_scans`` (not at region changes), its
+    cloud the hit cells of the scans since the keyframe before and the ``visit_pad``
+    before those, drawn at this front end's own poses (measurement only, never a map the
+    graph moved), for the region-edges plugin's visit loop search; ``visit_grid`` fuses
+    these clouds at the optimised keyframe poses (``map.pgm``). Needs graph_feedback off.
+
+    wheel_check_m / wheel_check_deg (0: off): a first registration that lands farther
+    than this from the wheel-odometry prediction must fit the submap better than PLICP
+    from the prediction within ``wheel_check_distance`` m (the share of the scan's points
+    within ``wheel_check_inlier_m`` of the submap's lines, ``plicp.inlier_share``); else
+    the registration near the wheels is taken (MIT-CSAIL's 5 Hz turns: PLICP jumps to a
+    wall 20 deg off the wheels and the scans). start_frames: without wheel odometry the
+    first registrations of these frames search the motion (``start``, a correlative
+    window around the constant-velocity prediction) instead of assuming rest.
+
+    graph_info_scale: a keyframe's information (the odometry factor of the graph) is the
+    model of ``planar_information`` (2 cm + 2 %, 0.5 deg + 2 % of the turn) times this:
+    on the real logs this front end's relative poses are about 8x more accurate than
+    that model (self-consistency relations, median 0.8 - 1 cm over 0.5 - 2 m; the
+    optimised graphs leave the odometry factors at chi2 / dof 0.01 - 0.04), and a loose
+    chain lets the loop edges bend the trajectory between vertices, which the
+    relations see as steps (Intel 1.09 -> 1.24 cm mean with 1, 1.08 cm with 64). Only with
+    the first registration on (wheel odometry alone keeps the model).
+    """
+
+    submap_scans: int = 20
+    k1: int = 5
+    k2: int = 20
+    region_width: float = 4.0
+    second_every: int = 5
+    first_registration: bool = True
+    second_registration: bool = True
+    use_odometry: bool = True
+    odometry_prior: bool = True
+    max_range: float = 30.0
+    min_points: int = 30
+    max_step: float = 0.5
+    max_step_deg: float = 20.0
+    submap_grid: GridConfig = field(default_factory=_submap_grid)
+    region_grid: GridConfig = field(default_factory=GridConfig)
+    lines: LineConfig = field(default_factory=LineConfig)
+    plicp: PlicpConfig = field(default_factory=PlicpConfig)
+    regional_plicp: PlicpConfig = field(default_factory=lambda: PlicpConfig(max_distance=0.3))
+    revisit_search: bool = True
+    revisit_path: float = 10.0
+    revisit_radius: float = 6.0
+    revisit_every: int = 0
+    revisit_regions: int = 6
+    revisit: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(max_shift=4.0))
+    revisit_max_uniqueness: float = 0.8
+    revisit_min_inliers: float = 0.5
+    revisit_match_distance: float = 0.1
+    revisit_min_m: float = 0.15
+    revisit_min_deg: float = 2.0
+    graph_feedback: bool = False
+    visit_clouds: bool = True
+    reanchor_loops: bool = True
+    visit_scans: int = 0
+    visit_pad: int = 15
+    wheel_check_m: float = 0.1
+    wheel_check_deg: float = 4.0
+    wheel_check_distance: float = 0.15
+    wheel_check_inlier_m: float = 0.05
+    start_frames: int = 3
+    graph_info_scale: float = 64.0
+    start: CorrelativeConfig = field(
+        default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
+    )
+
+    def __post_init__(self) -> None:
+        if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
+            raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
+        if not self.region_width > 0:
+            raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
+        if self.visit_scans < 0 or self.visit_pad < 0:
+            raise ConfigError("dpcr2d: visit_scans and visit_pad must be >= 0")
+        if self.visit_scans and self.graph_feedback:
+            raise ConfigError(
+                "dpcr2d: visit_scans needs graph_feedback off (measurement-only clouds)"
+            )

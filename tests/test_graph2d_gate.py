@@ -1,0 +1,64 @@
+"""Loop edges really switched off (``slam.graph2d_gate``): a chain of odometry with one
+right and several wrong loop edges; the Cauchy kernel alone lets the wrong ones pull, the
+gate leaves them out, and the disagreement with the front end is measured."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from slam.graph2d_gate import disagreement, is_loop, optimize_gated
+
+
+def _chain(n=20, sigma_m=0.1, sigma_rad=0.05):
+    factors = [gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-4))]
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_m, sigma_m, sigma_rad]))
+    factors += [gtsam.BetweenFactorPose2(i, i + 1, gtsam.Pose2(1, 0, 0), odo) for i in range(n)]
+    start = gtsam.Values()
+    for i in range(n + 1):
+        start.insert(i, gtsam.Pose2(i, 0, 0))
+    return factors, start
+
+
+def _loop(a, b, z):
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Cauchy.Create(1.0),
+        gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, np.radians(1.0)])),
+    )
+    return gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*z), noise)
+
+
+def _lm(graph, values):
+    return gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+
+
+def test_wrong_loop_edges_are_switched_off_and_right_ones_kept():
+    factors, start = _chain()
+    factors.append(_loop(0, 20, (20.0, 0.0, 0.0)))  # right
+    wrong = [_loop(5, 15, (9.0, 0.8, 0.05)), _loop(6, 16, (9.0, 0.8, 0.05)),
+             _loop(7, 17, (9.0, 0.8, 0.05))]  # fmt: skip
+    factors += wrong
+    assert [is_loop(f) for f in factors].count(True) == 4
+    robust_only = optimize_gated(factors, start, _lm, gate_sigma=0.0)
+    gated = optimize_gated(factors, start, _lm, gate_sigma=4.0)
+    err = [np.hypot(r.values.atPose2(15).x() - 15, r.values.atPose2(15).y())
+           for r in (robust_only, gated)]  # fmt: skip
+    assert err[0] > 0.05  # the Cauchy kernel lets three agreeing wrong edges pull
+    assert err[1] < 1e-6
+    assert list(np.flatnonzero(gated.off)) == [22, 23, 24]
+    d0 = disagreement(factors, robust_only.sigmas, robust_only.off)
+    d1 = disagreement(factors, gated.sigmas, gated.off)
+    assert d0["frontend_residual_max_sigma"] > 0.3 and d0["loop_edges_off"] == 0
+    assert d1["frontend_residual_max_sigma"] < 1e-6 and d1["loop_edges_off"] == 3
+    assert d1["loop_edges"] == 4 and d1["loop_residual_max_sigma"] < 1e-6
+
+
+def test_a_switched_off_edge_comes_back_when_it_agrees():
+    """An edge off at a poor start estimate is checked again at the next one."""
+    factors, start = _chain(sigma_m=0.02, sigma_rad=0.01)
+    factors.append(_loop(0, 20, (20.0, 0.0, 0.0)))
+    bad_start = gtsam.Values(start)
+    bad_start.update(20, gtsam.Pose2(21.0, 0.0, 0.0))
+    res = optimize_gated(factors, bad_start, _lm, gate_sigma=4.0)
+    assert not res.off.any()
+    assert abs(res.values.atPose2(20).x() - 20.0) < 1e-6
