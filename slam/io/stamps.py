@@ -149,7 +149,7 @@ class Reorder:
     """``items`` with up to ``window`` scans held back and released in stamp order (the
     earliest when the buffer is full, all at the end): scans recorded up to ``window``
     places out of order come out in order. A held scan that more than ``window`` later
-    recorded scans overtake (each after the last released one) has a stamp ahead of its
+    recorded scans overtake (each after the previous one let out) has a stamp ahead of its
     time (one glitched stamp): it is released as a SkippedMessage "stamp out of order"
     instead of sitting in the buffer to the end. Skipped messages pass at once. An
     InputError of the input (a truncated bag) first releases the scans held, then

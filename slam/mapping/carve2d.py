@@ -1,6 +1,6 @@
 """Many scans fused into one probabilistic occupancy grid with free-space carving (hits
 and misses along every beam), compiled: the grid a whole log's map is when read the way
-``map_server`` reads it (issue 14, session 9: the wall measure on the probabilistic map).
+``map_server`` reads it (the wall measure on the probabilistic map).
 
 ``carve_scans(grid, poses, scans)`` equals ``grid.add_scan(transform2d(pose, pts),
 pose[:2])`` for every scan in turn (``slam.mapping.grid2d.OccupancyGrid.add_scan``, the

@@ -16,31 +16,8 @@ labels do not look like beams (``MAX_RING_SPREAD``).
 
 The ring only steers the search; a wrong or coarse ring costs speed, never exactness.
 
-Measured (benchmarks/bench_preprocess.py --scans, machine under load, CPU ms old -> new, same
-run): 28.8k-point 16-beam corridor scan 40 -> 17 (k-NN), 41 -> 19 (weighted SOR); 132k-point
-64-beam urban scan 144 -> 86 / 160 -> 96; real KITTI-raw HDL-64E 137 -> 101 / 148 -> 112;
-keep-masks identical; 99.3-99.8 % of the points certified by the window. Then the box search
-for the uncertified points, scratch buffers and the vectorised exp of the SOR statistics
-(``--scans --before be24d87 --threads 1``, min CPU ms of 15, load average 25): weighted SOR
-corridor 18.2 -> 15.5, park 18.4 -> 16.8, urban 108.3 -> 94.7, KITTI-raw 118.7 -> 107.5.
-Then (issue 12, ``--scans --before 6ed55b5``, 2 threads, load average 11.6, min wall ms of
-15, same run): corridor 43.9 -> 31.3 (1.40x), park 63.8 -> 42.0 (1.52x), urban 150.3 -> 122.9
-(1.22x), KITTI-raw 188.8 -> 171.4 (1.10x), same keep-masks and neighbours. Per step (one
-thread, CPU ms, corridor / urban HDL-64): window search 5.5 / 51, box search 0.4 / 7.6,
-range image 0.75 / 5.3, statistics 0.8 / 5.8, row gather 0.7 / - . The window's cost is its
-control flow, not its ~19 (16-beam) to ~36 (64-beam) distance evaluations per point:
-making the sort network branch-free alone took 1 ms off 7.4 on the corridor.
-Then (issue 12, one thread, window search CPU ms, interleaved min of 9, same run): rings
-that are wide in elevation (real sensors' beams sit off the origin: a KITTI-raw ring spans
-1.9 deg seen from it, every ring overlapping its neighbours, so ring-wide intervals pruned
-no ring) get elevation bounds per azimuth sector and per block, and the walk's stop test is
-one comparison (``_stop_dot``): KITTI-raw 70.7 -> 41.2 evaluations per point, 135 -> 110 ms
-(1.23x); simulated rings (1e-8 rad wide) within 2 % of before. Where the rest goes: with the
-exact k-th distance known before the search (an oracle), the window would still need 16.6 /
-23.4 / 28.9 evaluations per point on the corridor / park / urban HDL-64 scans against 18.6 /
-32.1 / 35.5, so a better seed buys little (a seed from the adjacent rings on 64-beam scans
-measured 35.5 -> 33.8 and no faster); per point the seed and the written rows (168 bytes)
-are 35 % of a 16-beam scan's window time and 17 % of a 64-beam one's, the walks the rest.
+What it costs against a KD-tree on each sensor: ``benchmarks/bench_preprocess.py --scans``
+and docs/speed.md.
 """
 
 from __future__ import annotations

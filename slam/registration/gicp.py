@@ -69,7 +69,7 @@ class GicpConfig:
     as much as thousands of good pairs); the fitness (RMSE) still counts every pair within
     max_correspondence. 0 = off (default: on the real HDL-32E pair the gate moved the
     kernel-equivalence test's rotation to 0.26 deg, past its 0.2 deg bound). 1000 against 0,
-    improved_floam, same session: urban
+    improved_floam, urban
     HDL-64E first 100 frames APE 3.71 -> 2.14 cm, worst step 14.6 -> 2.1 cm, 1 -> 0 frames
     lost; OS-128 3.81 -> 3.76 cm; VLP-16 5.17 -> 5.15 cm; corridor / plaza 300 scans 1.20 ->
     1.16 / 0.84 -> 0.83 cm. 100 did a little better on most (2.11 cm, 1.2 cm; 3.62; 1.14 /

@@ -1,5 +1,5 @@
 """The ``building_return`` scene: the floor of :mod:`slam.sim.building` driven out and back
-along the same corridors, for loop closure that can see the drift (issue 13).
+along the same corridors, for loop closure that can see the drift.
 
 ``building_loop`` meets itself only at its start, where the along-corridor slips of its
 two long corridors (driven east, then west) have largely cancelled: no loop closure
