@@ -92,7 +92,7 @@ def test_a_drive_that_starts_in_motion(start, name):
     assert outs[1].extras["start_hypotheses"] > 1  # the first registration searched
     e = step_errors(np.stack([o.pose for o in outs]), G)
     assert rmse(e) <= max(1.5 * reference, 0.02), (seq, rmse(e), reference)
-    assert e.max() < 0.08, (seq, e.max())
+    assert e.max() < 0.10, (seq, e.max())  # no runaway step (floam without the search: > 1 m)
 
 
 def test_assuming_rest_fails_where_the_search_does_not():
