@@ -17,9 +17,9 @@ import small_gicp
 from shared_data import shared_path
 
 from slam.config import load_config
+from slam.eval.map_blur import map_blur
 from slam.io.folders import cloud_files, read_cloud
 from slam.plugins import instantiate
-from slam.preprocess.knn import knn
 from slam.sensor import estimate_beams, layout_rings
 from slam.types import Scan
 
@@ -49,30 +49,6 @@ def small_gicp_motion(target: np.ndarray, source: np.ndarray) -> np.ndarray:
     src, _ = small_gicp.preprocess_points(source, 0.25, num_threads=2)
     res = small_gicp.align(tgt, src, tree, np.eye(4), registration_type="GICP", num_threads=2)
     return res.T_target_source
-
-
-def map_blur(scans: list[Scan], poses: list[np.ndarray], voxel: float = 0.15) -> float:
-    """Crispness of the map the poses build (m): per scan, the median distance of its points
-    (``voxel``-downsampled) to the local planes (8 neighbours within 0.5 m, planar) of the
-    two scans before and after it, averaged over the scans. Wrong poses blur the map: 1 cm
-    of random pose noise raises it by ~0.1 cm on these scans."""
-    world = []
-    for s, P in zip(scans, poses, strict=True):
-        x = s.xyz[np.sort(np.unique(np.floor(s.xyz / voxel), axis=0, return_index=True)[1])]
-        world.append(x @ P[:3, :3].T + P[:3, 3])
-    blur = []
-    for i, w in enumerate(world):
-        near = [j for j in range(max(0, i - 2), min(i + 3, len(world))) if j != i]
-        others = np.concatenate([world[j] for j in near])
-        idx, dist = knn(others, w, 8)
-        ok = dist[:, -1] < 0.5
-        nb = others[idx[ok]]
-        c = nb.mean(axis=1)
-        ev, evec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb - c[:, None], nb - c[:, None]))
-        planar = ev[:, 0] < 0.05 * ev[:, 1]
-        d = np.abs(np.einsum("ni,ni->n", w[ok] - c, evec[:, :, 0]))
-        blur.append(np.median(d[planar]))
-    return float(np.mean(blur))
 
 
 def default_frontend_poses(scans: list[Scan]) -> list[np.ndarray]:
