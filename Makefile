@@ -1,7 +1,7 @@
 # `make demo`: set up, simulate 1200 frames of the city drive (cached), run
 # improved_floam_loop on it and print odometry only vs loop closed (APE, % improvement);
 # the report with the trajectories, the loop edges and the map is runs/demo/report.html.
-# `make test`: set up and run the test suite.
+# `make test`: set up and run the test suite (pytest-xdist, one worker per core).
 .PHONY: setup demo test lint bench clean
 
 setup:
@@ -11,7 +11,7 @@ demo: setup
 	@.venv/bin/slam demo --out runs/demo
 
 test: setup
-	@.venv/bin/python -m pytest -q
+	@.venv/bin/python -m pytest -q -n auto
 
 lint: setup
 	.venv/bin/ruff check . && .venv/bin/ruff format --check .
