@@ -11,6 +11,7 @@ from enum import Enum
 
 import numpy as np
 
+from slam.deferred import Deferred, numba_threads
 from slam.errors import ConfigError
 from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
@@ -95,6 +96,9 @@ class ImprovedFloamConfig(CommonConfig):
     covariances rotated into the map frame. map_refresh: "neighbours" = the new points' map
     neighbours get their covariance recomputed too (default); "new" = only the new points
     (~20 % faster on outdoor maps; park 2.2 vs 2.6 cm, plaza 0.88 vs 0.77 cm APE over 300 frames).
+    map_refresh_thread: the map refresh of scan n runs on a worker thread while scan n + 1 is
+    filtered and its features found, and is waited for before scan n + 1 registers (the
+    same poses as inline, ``slam.deferred``); false: inline.
     max_registration_points: when the thinned features exceed this many (dense 64-128 beam
     scans), GICP registers a density-aware subset of them (``thin_to_count``: edges and planes
     voxel-thinned again, both voxels grown by the same factor); their covariances still come
@@ -148,6 +152,7 @@ class ImprovedFloamConfig(CommonConfig):
     covariance_voxel: float = 0.25
     map_covariance: str = "map"
     map_refresh: str = "neighbours"
+    map_refresh_thread: bool = True
     max_registration_points: int = 8000
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
@@ -222,13 +227,34 @@ class ImprovedFloam(ScanToMapFrontend):
     def __init__(self, cfg: ImprovedFloamConfig | None = None):
         self.cfg = cfg or ImprovedFloamConfig()
         super().__init__(self.cfg)
-        self.map = VoxelHashMap(self.cfg.map, with_covariances=True)
+        self._map = VoxelHashMap(self.cfg.map, with_covariances=True)
+        # the map covariances of scan n are refreshed while scan n + 1 is filtered
+        self._map_job = Deferred(self.cfg.map_refresh_thread, "map-refresh")
+        self._map_job_ms = 0.0  # the last refresh's own wall time
         self._cov_source, self._map_cov, self._refresh = self.cfg.strategies()
         # features are picked without kappa; the correction runs on the downsampled features
         self._features_no_kappa = replace(self.cfg.features, use_covariance_curvature=False)
         self._n_thinned = 0  # scans thinned by the column stride so far (its phase)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
+        # the map refresh of the previous scan runs on the other core meanwhile
+        with numba_threads(1 if self._map_job.pending else None):
+            est = self._prepare(scan, T_pred, timings)
+        if est.skipped is not None:
+            return est
+        src, covs = est.pending.registration_source()
+        timings["map_wait_ms"] = self._map_job.wait() * 1e3
+        timings["map_refresh_ms"] = self._map_job_ms
+        t = time.perf_counter()
+        if len(self._map) >= 10:
+            est.result = self._align(src, covs, T_pred, wide)
+            est.pose = est.result.T_target_source
+        timings["registration_ms"] = (time.perf_counter() - t) * 1e3
+        return est
+
+    def _prepare(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
+        """SOR, features and their covariances (``est.pending``): everything before the
+        registration, none of it reading the map."""
         flt = self._filter(scan, timings)
         counts: dict = {"n_after_sor": int(len(flt.xyz))}
         if flt.stride is not None:
@@ -249,15 +275,8 @@ class ImprovedFloam(ScanToMapFrontend):
 
         t = time.perf_counter()
         est.pending = self._feature_cloud(flt.xyz, rings, e_idx, p_idx)
-        src, covs = est.pending.registration_source()
-        counts["n_registered"] = int(len(src))
+        counts["n_registered"] = int(len(est.pending.registration_source()[0]))
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
-
-        t = time.perf_counter()
-        if len(self.map) >= 10:
-            est.result = self._align(src, covs, T_pred, wide)
-            est.pose = est.result.T_target_source
-        timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
     def _filter(self, scan: Scan, timings: dict) -> Filtered:
@@ -352,7 +371,7 @@ class ImprovedFloam(ScanToMapFrontend):
         """GICP against the map (its voxel hash answers the neighbour queries) from
         ``T_pred``; ``wide``: a coarse pass with a wider search first."""
         rc = self.cfg.registration
-        target = GicpTarget(self.map.points, self.map.covs, tree=self.map)
+        target = GicpTarget(self._map.points, self._map.covs, tree=self._map)
         T0 = T_pred
         if wide:  # tracking lost: coarse pass from the prediction with a wider search
             d = rc.max_correspondence * self.cfg.recovery_correspondence_factor
@@ -360,8 +379,18 @@ class ImprovedFloam(ScanToMapFrontend):
             T0 = gicp_align(src, target, T_pred, coarse, source_covs=covs).T_target_source
         return gicp_align(src, target, T0, rc, source_covs=covs)
 
+    @property
+    def map(self) -> VoxelHashMap:
+        """The local map, once its pending covariance refresh is done."""
+        self._map_job.wait()
+        return self._map
+
+    def close(self) -> None:
+        """Finish the pending map refresh and stop its worker thread."""
+        self._map_job.close()
+
     def _map_size(self) -> int:
-        return len(self.map)
+        return len(self._map)
 
     def _scan_state(self) -> int:
         return self._n_thinned  # the column stride's phase advances once per scan
@@ -371,6 +400,7 @@ class ImprovedFloam(ScanToMapFrontend):
 
     def _insert(self, est: Estimate[FeatureCloud], timings: dict) -> None:
         cfg, rc = self.cfg, self.cfg.registration
+        self._map_job.wait()
         fc, T = est.pending, est.pose
         R = T[:3, :3]
         from_map = self._map_cov is MapCovariance.MAP
@@ -378,25 +408,31 @@ class ImprovedFloam(ScanToMapFrontend):
             rotated = np.broadcast_to(np.eye(3), (len(fc.points), 3, 3))
         else:
             rotated = np.einsum("ij,njk,lk->nil", R, fc.covs, R)
-        n_new = self.map.add(fc.points @ R.T + T[:3, 3], rotated, T[:3, 3])
+        n_new = self._map.add(fc.points @ R.T + T[:3, 3], rotated, T[:3, 3])
         if not (from_map and n_new):
             return
-        if len(self.map) < rc.k_covariance:  # too few points for eq. (1): the source's
-            acc = self.map.last_accepted
+        if len(self._map) < rc.k_covariance:  # too few points for eq. (1): the source's
+            acc = self._map.last_accepted
             covs = fc.all_covs(cfg.plane_voxel)[acc]
-            self.map.covs[len(self.map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs, R)
+            self._map.covs[len(self._map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs, R)
         else:
+            self._map_job.submit(lambda: self._timed_refresh(n_new))
+
+    def _timed_refresh(self, n_new: int) -> None:
+        t = time.perf_counter()
+        with numba_threads(1):  # the calling thread filters the next scan meanwhile
             self._refresh_map_covariances(n_new)
+        self._map_job_ms = (time.perf_counter() - t) * 1e3
 
     def _refresh_map_covariances(self, n_new: int) -> None:
         """Eq. (1) on the map: the ``n_new`` newest points and (``map_refresh`` neighbours)
         every map point having one of them among its k neighbours get their covariance
         (re)computed from the current map."""
         rc = self.cfg.registration
-        n_old = len(self.map) - n_new
-        new = np.arange(n_old, len(self.map))
-        pts = self.map.points
-        _, nb = self.map.query(pts[new], k=rc.k_covariance)
+        n_old = len(self._map) - n_new
+        new = np.arange(n_old, len(self._map))
+        pts = self._map.points
+        _, nb = self._map.query(pts[new], k=rc.k_covariance)
         dirty, nb_dirty = new, nb
         if self._refresh is MapRefresh.NEIGHBOURS:
             # the old points among the new points' neighbours; the new ones (the last rows)
@@ -404,10 +440,10 @@ class ImprovedFloam(ScanToMapFrontend):
             mark = np.zeros(n_old, dtype=bool)
             mark[nb[nb < n_old]] = True
             old = np.flatnonzero(mark)  # np.unique(nb[nb < n_old]) without its hash pass
-            _, nb_old = self.map.query(pts[old], k=rc.k_covariance)
+            _, nb_old = self._map.query(pts[old], k=rc.k_covariance)
             dirty = np.concatenate([old, new])
             nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
-        self.map.covs[dirty] = estimate_covariances(
+        self._map.covs[dirty] = estimate_covariances(
             pts,
             rc.k_covariance,
             rc.lambda_reg,

@@ -39,7 +39,7 @@ def interpolate_pose(T_start_end: np.ndarray, s: np.ndarray) -> tuple[np.ndarray
     return R, t
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _deskew_kernel(xyz, time, period, theta, u, rho, u_rho, uu_rho):
     """The closed form of ``deskew`` (backend "numpy") point by point in one pass; cos and sin
     once per run of equal stamps (e.g. a firing column)."""

@@ -54,7 +54,7 @@ def covariance_curvature(
     return kappa_from_neighbours(xyz, q, idx)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _kappa_kernel(xyz, q, idx):
     """``kappa_from_neighbours`` per query point in one pass (same formulas)."""
     m_all, k = idx.shape

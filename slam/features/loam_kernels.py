@@ -21,7 +21,7 @@ from numba import njit
 SMALL = 32  # clusters of at most this many NMS candidates are sorted by insertion
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _merge_runs(idx, key, bounds, n_runs, buf_i, buf_k):
     """Stable bottom-up merge of the sorted runs [bounds[r], bounds[r+1]) of key (and idx
     alongside); ties keep the left run first. Result in idx/key."""
@@ -72,7 +72,7 @@ def _merge_runs(idx, key, bounds, n_runs, buf_i, buf_k):
         key[:] = src_k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def stable_argsort(key):
     """np.argsort(key, kind="stable") for a key without NaN: natural merge sort (runs that
     are non-decreasing, or strictly decreasing and then reversed, merged pairwise)."""
@@ -107,7 +107,7 @@ def stable_argsort(key):
     return idx
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sort_ring(seg, key):
     """Sort the indices seg (ascending) in place by key[seg], ties by position (stable).
     Spinning-lidar rings take a shortcut: one non-decreasing run (nothing to do), one
@@ -146,7 +146,7 @@ def _sort_ring(seg, key):
         o += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ring_order(xyz, ring, key, min_range, max_range, ring_max):
     """The points to use (ring >= 0, range in [min_range, max_range] m) sorted by
     (ring, key, index): their indices and the start of each non-empty ring (R + 1,) in that
@@ -191,7 +191,7 @@ def ring_order(xyz, ring, key, min_range, max_range, ring_max):
     return order, start
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def loam_scores(
     xyz,
     order,
@@ -290,7 +290,7 @@ def loam_scores(
     return c, run, cand, plane_cand
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def greedy_nms(key, cand, run, w):
     """A-LOAM's greedy selection with no count limit, picks (positions, ascending): candidates
     visited by decreasing key (ties by position), each picked unless a picked one lies within
@@ -337,7 +337,7 @@ def greedy_nms(key, cand, run, w):
     return np.flatnonzero(picked)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sector_top(sel, start, key, w, n_sectors, n_max):
     """The picks sel (sorted positions, ascending) that rank < n_max by decreasing key (ties
     by position) in their sector: each ring's valid span [w, len - w) cut into n_sectors

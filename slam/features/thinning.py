@@ -20,7 +20,7 @@ from slam.errors import InputError
 _CELL_LIMIT = 2.0**60  # |coordinate / voxel| beyond this: the cell index would overflow
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _thin(xyz, idx, voxel, table_bits, keep):
     """Mark in ``keep`` (len(idx),) the position of each voxel's point nearest to its
     centroid; returns the number of voxels, or -1 when a cell index would overflow."""

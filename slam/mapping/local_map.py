@@ -35,6 +35,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from slam.deferred import numba_threads
 from slam.errors import ConfigError, InputError
 from slam.mapping import local_map_kernels as K
 
@@ -328,27 +329,13 @@ class VoxelHashMap:
             shells = min(max(shells, need), MAX_BOUNDED_SHELLS)
         unresolved = np.zeros(len(x), dtype=np.bool_)
         voxel = float(self.cfg.voxel_size)
-        parallel = self.cfg.threads > 1 and len(x) >= PARALLEL_QUERIES
-        kernel = K.query_parallel if parallel else K.query
-        if parallel:
-            numba.set_num_threads(min(self.cfg.threads, numba.config.NUMBA_NUM_THREADS))
-        kernel(
-            x,
-            k,
-            max_d2,
-            voxel,
-            shells,
-            *_SHELLS,
-            self._tkeys,
-            self._tvals,
-            self._vcount,
-            self._vslots,
-            self._vpts,
-            self._state,
-            od,
-            oi,
-            unresolved,
+        # a caller that keeps its numba kernels to one thread (slam.deferred) stays serial
+        parallel = (
+            self.cfg.threads > 1 and numba.get_num_threads() > 1 and len(x) >= PARALLEL_QUERIES
         )
+        kernel = K.query_parallel if parallel else K.query
+        with numba_threads(self.cfg.threads if parallel else None):
+            self._run_query(kernel, x, k, max_d2, shells, od, oi, unresolved)
         rows = np.flatnonzero(unresolved)
         if len(rows):  # isolated points (sparse far returns): on over the coarse cells
             K.query_coarse(
@@ -374,6 +361,26 @@ class VoxelHashMap:
         if k == 1:
             return d[:, 0], oi[:, 0]
         return d, oi
+
+    def _run_query(self, kernel, x, k, max_d2, shells, od, oi, unresolved) -> None:
+        """One call of a voxel-shell query kernel over the hash tables."""
+        kernel(
+            x,
+            k,
+            max_d2,
+            float(self.cfg.voxel_size),
+            shells,
+            *_SHELLS,
+            self._tkeys,
+            self._tvals,
+            self._vcount,
+            self._vslots,
+            self._vpts,
+            self._state,
+            od,
+            oi,
+            unresolved,
+        )
 
     def _voxel_tables(self) -> tuple[np.ndarray, ...]:
         """The voxel hash, the per-voxel point copies and lists, and the coarse-cell hash,

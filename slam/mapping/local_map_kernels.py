@@ -22,7 +22,7 @@ MASK21 = (1 << 21) - 1
 N, NV, NC, BOX = 0, 1, 2, 3  # indices into ``state``
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _home(tkeys, key):
     """Home slot of ``key``: splitmix64's finaliser, whose low bits depend on every bit of
     the key. (Masking bits 17.. of key * golden ratio ignored x, the top 21 bits of the key:
@@ -35,7 +35,7 @@ def _home(tkeys, key):
     return (h ^ (h >> np.uint64(31))) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def slot(tkeys, key):
     """Slot of ``key`` in the table (its own, or the empty slot where it would go)."""
     mask = np.uint64(len(tkeys) - 1)
@@ -45,7 +45,7 @@ def slot(tkeys, key):
     return h
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _delete(tkeys, tvals, key):
     """Remove ``key`` (present) by backward shifting, so that no probe chain breaks."""
     mask = np.uint64(len(tkeys) - 1)
@@ -68,7 +68,7 @@ def _delete(tkeys, tvals, key):
     tkeys[i] = -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rehash(keys, n, tkeys, tvals):
     """Insert ids 0..n-1 with keys ``keys`` into the empty table."""
     for v in range(n):
@@ -77,13 +77,13 @@ def rehash(keys, n, tkeys, tvals):
         tvals[h] = v
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _axis(key, a):
     """Coordinate a (0, 1, 2) of a packed key."""
     return (key >> (42 - 21 * a)) & MASK21
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _grow_box(state, ck, first):
     """Widen the box of occupied cells (``state[BOX:]``) to cell ``ck`` (reset if first)."""
     for a in range(3):
@@ -94,7 +94,7 @@ def _grow_box(state, ck, first):
             state[BOX + 3 + a] = x
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coarse_key(key, b):
     x = (key >> 42) // b
     y = ((key >> 21) & MASK21) // b
@@ -102,7 +102,7 @@ def _coarse_key(key, b):
     return (x << 42) | (y << 21) | z
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def insert(
     keys,
     points,
@@ -178,7 +178,7 @@ def insert(
     return n_acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _box_d2(lo, hi, q):
     """(min, max) squared distance from point q to the axis-aligned box [lo, hi]."""
     dmin = 0.0
@@ -191,7 +191,7 @@ def _box_d2(lo, hi, q):
     return dmin, dmax
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _remove_cell(c, ctkeys, ctvals, ckey, chead, cnvox, vcell, vnext, state):
     _delete(ctkeys, ctvals, ckey[c])
     u = state[NC] - 1
@@ -207,7 +207,7 @@ def _remove_cell(c, ctkeys, ctvals, ckey, chead, cnvox, vcell, vnext, state):
     state[NC] = u
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _remove_voxel(
     v,
     tkeys,
@@ -260,7 +260,7 @@ def _remove_voxel(
     state[NV] = w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def remove_far(
     origin,
     radius,
@@ -397,7 +397,7 @@ def remove_far(
 # --------------------------------------------------------------------------- queries
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _push(bd, bi, d2, j):
     """Insert (d2, j) into the ascending k-best lists (strictly closer than the last)."""
     m = len(bd) - 1
@@ -409,7 +409,7 @@ def _push(bd, bi, d2, j):
     bi[m] = j
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _scan_voxel(v, vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi):
     """Offer the points of voxel v (their copies in ``vpts``: contiguous, no row gathers)."""
     last = len(bd) - 1
@@ -422,13 +422,13 @@ def _scan_voxel(v, vcount, vslots, vpts, qx, qy, qz, max_d2, bd, bi):
             _push(bd, bi, d2, vslots[v, c])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gap(lo, q, size):
     """Distance (m) along one axis from q to the interval [lo, lo + size]."""
     return max(lo - q, q - (lo + size), 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coarse_search(
     qx,
     qy,
@@ -538,7 +538,7 @@ def shell_offsets(max_shells: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(rows).astype(np.int64), np.array(start, dtype=np.int64)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _query_one(
     i,
     q,
@@ -608,7 +608,7 @@ def _query_one(
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def query(
     q,
     k,
@@ -656,7 +656,7 @@ def query(
         unresolved[i] = not settled
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def query_parallel(
     q,
     k,
@@ -699,7 +699,7 @@ def query_parallel(
         unresolved[i] = not settled
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def query_coarse(
     q,
     rows,

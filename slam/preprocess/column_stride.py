@@ -77,7 +77,7 @@ def stride_columns_reference(
     return np.sort(np.concatenate([order[first], np.flatnonzero(~ok)]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _first_in_bin(b: np.ndarray, off: np.ndarray, ok: np.ndarray, n: int) -> np.ndarray:
     """(M,) ascending indices: per bin id 0..n-1 the smallest offset (the first on ties),
     plus every index with ok False."""

@@ -23,7 +23,7 @@ WIDE_RING = 1e-4
 SECTORS = 256
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sort_rings(rank: np.ndarray, az: np.ndarray, n_rings: int, order: np.ndarray) -> np.ndarray:
     """Writes order (N,), the points by (ring rank, azimuth); returns the ring offsets into it
     (n_rings + 1).
@@ -81,7 +81,7 @@ def _pseudo_azimuth(x: float, y: float) -> float:
     return y / (x + y) - 2.0 if x < 0.0 else x / (x - y) - 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
     """(N,) rank of each point's ring among the rings present, ordered by their mean
     elevation el (rad), and the number of rings present. Any integer ring labels."""
@@ -89,7 +89,7 @@ def ring_ranks(ring: np.ndarray, el: np.ndarray) -> tuple[np.ndarray, int]:
     return rank, ring_ranks_into(ring, el, rank)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ring_ranks_into(ring: np.ndarray, el: np.ndarray, rank: np.ndarray) -> int:
     """``ring_ranks`` writing the ranks into rank (N,); returns the number of rings."""
     n = len(ring)
@@ -131,7 +131,7 @@ def range_image(xyz: np.ndarray, ring: np.ndarray):
     return order, start, xyz_s, rng, el_s, az_s, cx, cy, lo, hi, spread
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def range_image_into(xyz, ring, az, el, rank, order, xyz_s, rng, el_s, az_s, cx, cy):
     """``range_image`` into caller-owned (N,) / (N, 3) buffers (reused from scan to scan:
     fresh arrays cost page faults, a third of the time of a 16-beam scan's SOR); az, el and
@@ -222,7 +222,7 @@ def _ce(a: float, b: float, ia: int, ib: int) -> tuple[float, float, int, int]:
     return min(a, b), max(a, b), ia + dd, ib - dd
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sort10(bd: np.ndarray, bi: np.ndarray) -> None:
     """Sort 10 (distance, index) pairs ascending: Waksman's 29-comparator network on
     registers; the window's first k = 10 candidates arrive in no predictable order, and
@@ -359,7 +359,7 @@ def _block_bound2(h: float, r2: float, rp: float, rmin: float, rmax: float) -> f
     return max(r2 + r * r - 2.0 * rp * r * c, 0.0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def window_knn(
     xyz: np.ndarray,
     rng: np.ndarray,
@@ -699,7 +699,7 @@ BOX = 16  # sorted points per bounding box of the exact search for uncertified p
 SUPER = 16  # boxes per super box
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def chunk_boxes(xyz: np.ndarray, size: int) -> np.ndarray:
     """(ceil(N / size), 6) axis-aligned bounds (min xyz, max xyz; m) of consecutive chunks of
     ``size`` points. Chunks of the range-image order are short arcs of one ring: tight boxes."""
@@ -717,7 +717,7 @@ def chunk_boxes(xyz: np.ndarray, size: int) -> np.ndarray:
     return box
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def merge_boxes(box: np.ndarray, size: int) -> np.ndarray:
     """Bounds of consecutive groups of ``size`` boxes (the next level of ``chunk_boxes``)."""
     nb = len(box)
@@ -743,7 +743,7 @@ def _box_dist2(box: np.ndarray, b: int, px: float, py: float, pz: float) -> floa
     return dx * dx + dy * dy + dz * dz
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def box_knn(
     xyz: np.ndarray,
     order: np.ndarray,
@@ -798,7 +798,7 @@ def box_knn(
             out_idx[o, t + 1] = order[bi[t]] if bi[t] >= 0 else -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_rows(order, idx_s, dist_s, cert_s, visits_s, idx, dist, cert, visits) -> None:
     """Rows in range-image order (row s is input point order[s]) to the input order: a
     gather (sequential writes); the same CPU time as the scatter it replaces (strided reads

@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def weighted_sor_kernel(
     dist: np.ndarray, alpha: float, delta: float, max_density_ratio: float
 ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
@@ -57,7 +57,7 @@ EXP_TAYLOR = np.array([1.0 / float(np.prod(np.arange(1, j + 1))) for j in range(
 EXP_CHUNK = 256  # rows per pass of the vectorised exp (scratch stays in L1/L2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def exp_neg(x: np.ndarray, scale: float, w: np.ndarray, bits: np.ndarray) -> None:
     """w[j] = exp(-x[j] * scale) for x >= 0 (1-D), in loops without calls so that they
     compile to SIMD (libm's exp goes one value at a time): Cody-Waite reduction
@@ -80,7 +80,7 @@ def exp_neg(x: np.ndarray, scale: float, w: np.ndarray, bits: np.ndarray) -> Non
         w[j] *= two_n[j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def weighted_sor_kernel_simd(
     dist: np.ndarray, alpha: float, delta: float, max_density_ratio: float
 ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
     return (cells[0] * dims[1] + cells[1]) * dims[2] + cells[2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _nearest_to_centroid(xyz, order, ks, out):
     """Per run of equal keys in ``ks`` (sorted, rows ``order``): the row nearest to the
     run's centroid (first on ties); returns how many were written to ``out``."""

@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accumulate(T, p, q, W, w, H, b, with_jacobian):
     R = T[:3, :3]
     t = T[:3, 3]
@@ -80,7 +80,7 @@ def cost(T, p, q, W, w) -> float:
     return float(_accumulate(_c(T), _c(p), _c(q), _c(W), _weights(w, len(p)), H, b, False))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _information(R, src_covs, ok_idx, tgt_covs, j, out):
     C = np.empty((3, 3))
     RS = np.empty((3, 3))
@@ -126,7 +126,7 @@ def gicp_information(
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _neighbour_covariances(xyz, idx, out):
     k = idx.shape[1]
     for n in range(len(idx)):
@@ -169,7 +169,7 @@ def neighbour_covariances(xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gicp_terms(T, src, src_covs, tgt_pts, tgt_covs, j, n_tgt, p, q, W, H, b):
     """``_information`` then ``_accumulate`` (unit weights) fused in one pass over the source
     points that have a correspondence (j < n_tgt), in their order: the same arithmetic in
