@@ -65,10 +65,10 @@ class LocalMapConfig:
     300 frames).
 
     threads: numba threads for query batches of at least ``PARALLEL_QUERIES`` points (the
-    answers do not depend on it); 1 = always serial, the default: with 2 threads on two
-    cores shared by ~20 processes (benchmarks/bench_realtime.py, same run) the front end
-    took 10 % more CPU per frame (idle OpenMP threads spin) and no less wall time; to be
-    measured on a quiet machine, where the second core would otherwise idle."""
+    answers do not depend on it), never more than the calling thread's numba thread count
+    (a map refresh on a worker thread runs serial, ``slam.deferred``); 1 = always serial,
+    the default: 2 threads gave the urban VLP-16 and corridor runs the same wall time
+    (whole process, 0.99-1.00x, quiet machine) and cost CPU under load."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20
