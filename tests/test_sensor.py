@@ -1,4 +1,4 @@
-"""Beam model estimated from the data (slam/sensor.py): 16-128 beams, three point layouts."""
+"""Beam model estimated from the data (slam/sensor/): 16-128 beams, three point layouts."""
 
 from __future__ import annotations
 
