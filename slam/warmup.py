@@ -87,7 +87,7 @@ def warm_up(frontend_section: Any) -> float:
     ring/time fields; returns the seconds it took. Errors of the synthetic data (a recipe
     that rejects it) are logged, never raised: the warm-up only saves time."""
     from slam import plugins
-    from slam.sensor import estimate_beams
+    from slam.sensor.beam_table import estimate_beams
 
     t0 = time.perf_counter()
     scans = synthetic_scans()

@@ -19,7 +19,7 @@ from slam.features.loam import FeatureConfig, _greedy_nms, extract_features
 from slam.io.folders import cloud_files, read_cloud
 from slam.io.source import open_source
 from slam.preprocess.knn import knn
-from slam.sensor import beams_from_rings, estimate_beams
+from slam.sensor.beam_table import beams_from_rings, estimate_beams
 from slam.types import Scan
 
 KAPPA = FeatureConfig(use_covariance_curvature=True)

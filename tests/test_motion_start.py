@@ -16,7 +16,7 @@ from shared_data import shared_path
 from slam.config import load_config
 from slam.io.kitti import KittiSource
 from slam.plugins import instantiate
-from slam.sensor import estimate_beams
+from slam.sensor.beam_table import estimate_beams
 from slam.types import Scan
 
 # T_cam0_velo of sequences 04-12 (the shared folder's PROVENANCE.txt): poses.txt is of cam0

@@ -21,7 +21,7 @@ from slam.io.source import open_source
 from slam.preprocess.knn import knn, self_knn
 from slam.preprocess.range_image import range_image_knn, ring_ranks
 from slam.preprocess.sor import SorConfig, apply_sor, neighbourhoods
-from slam.sensor import estimate_beams
+from slam.sensor.beam_table import estimate_beams
 
 K = 10
 # measured certificate rates: corridor 0.996, urban VLP-16 0.997, urban HDL-64 0.995,

@@ -20,7 +20,8 @@ from slam.config import load_config
 from slam.eval.map_blur import map_blur
 from slam.io.folders import cloud_files, read_cloud
 from slam.plugins import instantiate
-from slam.sensor import estimate_beams, layout_rings
+from slam.sensor.beam_table import estimate_beams
+from slam.sensor.layout import layout_rings
 from slam.types import Scan
 
 N_KITTI = 8  # consecutive scans registered (~0.8 m apart at ~8 m/s)

@@ -1,4 +1,4 @@
-"""Beam model estimated from the data (slam/sensor.py): 16-128 beams, three point layouts."""
+"""Beam model estimated from the data (slam/sensor/): 16-128 beams, three point layouts."""
 
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from slam.errors import InputError
-from slam.sensor import BeamModel, beams_from_rings, estimate_beams, layout_rings
+from slam.sensor.beam_model import BeamModel
+from slam.sensor.beam_table import beams_from_rings, estimate_beams
+from slam.sensor.layout import layout_rings
 
 HDL64 = np.r_[np.linspace(-24.33, -8.83, 32), np.linspace(-8.33, 2.0, 32)]  # 1/2, 1/3 deg
 SENSORS = {
@@ -172,13 +174,13 @@ def _layout_clouds() -> list[np.ndarray]:
 
 
 def test_forward_kernel_equals_numpy_reference() -> None:
-    from slam.sensor import _forward_azimuth, _forward_from_azimuth
+    from slam.sensor.layout import forward_azimuth, forward_from_azimuth
 
     n_layouts = 0
     for xyz in _layout_clouds():
-        ref = _forward_azimuth(xyz)
+        ref = forward_azimuth(xyz)
         polar = np.arctan2(xyz[:, 1], xyz[:, 0]), np.hypot(xyz[:, 0], xyz[:, 1])
-        got = _forward_from_azimuth(*polar)
+        got = forward_from_azimuth(*polar)
         assert (ref is None) == (got is None)
         if ref is not None:
             n_layouts += 1
@@ -187,20 +189,21 @@ def test_forward_kernel_equals_numpy_reference() -> None:
 
 
 def test_group_medians_kernel_equals_numpy_reference() -> None:
-    from slam.sensor import _group_medians, _group_medians_kernel
+    from slam.sensor.layout import group_medians
+    from slam.sensor.layout_kernels import group_medians_kernel
 
     rng = np.random.default_rng(4)
     for n, groups in ((1, 1), (10, 3), (5001, 64), (20000, 130)):
         values = np.round(rng.normal(0.0, 5.0, n), 2)  # ties included
         group = rng.integers(0, groups, n)
         group[: min(n, groups)] = np.arange(min(n, groups))  # no group empty but the last
-        ref = _group_medians(values, group, groups + 1)
-        got = _group_medians_kernel(values, group, np.ones(n, np.bool_), groups + 1)
+        ref = group_medians(values, group, groups + 1)
+        got = group_medians_kernel(values, group, np.ones(n, np.bool_), groups + 1)
         assert np.array_equal(ref, got, equal_nan=True) and np.isnan(got[-1])
 
 
 def test_layout_rings_kernel_equals_numpy_reference() -> None:
-    from slam.sensor import layout_rings_reference
+    from slam.sensor.layout import layout_rings_reference
 
     n_layouts = 0
     for xyz in _layout_clouds():
@@ -252,7 +255,7 @@ def test_real_hdl64_layout_holds_on_every_scan(tmp_path) -> None:
     from shared_data import shared_path
 
     from slam.io.folders import read_cloud
-    from slam.sensor import layout_rings_reference
+    from slam.sensor.layout import layout_rings_reference
 
     with tarfile.open(shared_path("kitti_raw_drive", "data_1.tar.xz"), "r:xz") as tar:
         members = [m for m in tar if m.name.endswith(".pcd")][:4]

@@ -23,7 +23,7 @@ import numpy as np
 from slam.errors import ConfigError, InputError
 from slam.features import loam_kernels as kern
 from slam.features.curvature import KAPPA_VOLUME, covariance_curvature
-from slam.sensor import estimate_beams
+from slam.sensor.beam_table import estimate_beams
 
 
 @dataclass
@@ -281,52 +281,58 @@ def extract_features(
     return _extract_features_numpy(xyz, ring, cfg, azimuth_order)
 
 
-def _extract_features_numpy(
-    xyz: np.ndarray, ring: np.ndarray, cfg: FeatureConfig, azimuth_order: np.ndarray | None
-) -> Features:
-    """The vectorised numpy reference of ``extract_features`` (checked arguments)."""
-    n_all = len(xyz)
-    curvature_all = np.full(n_all, np.nan)
-    w = cfg.window
-    rng_all = np.linalg.norm(xyz, axis=1)
-    use = np.flatnonzero((ring >= 0) & (rng_all >= cfg.min_range) & (rng_all <= cfg.max_range))
-    use_kappa = cfg.use_covariance_curvature and n_all >= 2
-    kappa_all = np.full(n_all, np.nan) if use_kappa else None
-    if use.size == 0:
-        return Features(_empty_idx(), _empty_idx(), curvature_all, kappa=kappa_all)
-
-    # ring-sorted working arrays
+def _ring_sorted(
+    xyz: np.ndarray, ring: np.ndarray, use: np.ndarray, azimuth_order: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(order, rid, pos, nr): the used points sorted by ring then azimuth (rad), each one's
+    dense ring id, position within its ring and its ring's point count."""
     key = (
         np.arctan2(xyz[use, 1], xyz[use, 0])
         if azimuth_order is None
         else np.asarray(azimuth_order, dtype=np.float64)[use]
     )
     order = use[_by_group(ring[use], _argsort_stable(key))]  # = lexsort((key, ring))
-    p = xyz[order]
-    n = len(p)
     _, rid, rlen = np.unique(ring[order], return_inverse=True, return_counts=True)
     rid = rid.ravel()
     rstart = np.r_[0, np.cumsum(rlen)[:-1]]
-    pos = np.arange(n) - rstart[rid]
-    nr = rlen[rid]
-    depth = rng_all[order]
+    pos = np.arange(len(order)) - rstart[rid]
+    return order, rid, pos, rlen[rid]
 
-    # curvature (A-LOAM) via prefix sums over the concatenated rings
+
+def _ring_curvature(
+    p: np.ndarray, pos: np.ndarray, nr: np.ndarray, w: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(c, valid): A-LOAM curvature c = ||sum_j (p_j - p_i)||^2 (m^2) over w neighbours each
+    side, by prefix sums over the concatenated rings; NaN where the window leaves the ring."""
+    n = len(p)
     csum = np.vstack([np.zeros((1, 3)), np.cumsum(p, axis=0)])
     lo = np.clip(np.arange(n) - w, 0, n)
     hi = np.clip(np.arange(n) + w + 1, 0, n)
     diff = csum[hi] - csum[lo] - (2 * w + 1) * p
-    c = _sq_norm(diff)
     valid = (pos >= w) & (pos < nr - w)
-    c = np.where(valid, c, np.nan)
-    curvature_all[order] = c
+    return np.where(valid, _sq_norm(diff), np.nan), valid
 
-    # LOAM rejections: occluded points and surfaces nearly parallel to the beam
-    step = np.diff(p, axis=0)
-    gap2 = np.r_[_sq_norm(step), np.inf]
+
+def _next_gaps(p: np.ndarray, rid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(gap2, same_next): squared gap (m^2) to the next point of the same ring (inf at a ring
+    end) and whether the next point is on the same ring."""
+    gap2 = np.r_[_sq_norm(np.diff(p, axis=0)), np.inf]
     same_next = np.r_[rid[1:] == rid[:-1], False]
-    gap2 = np.where(same_next, gap2, np.inf)
-    picked = ~valid
+    return np.where(same_next, gap2, np.inf), same_next
+
+
+def _loam_rejected(
+    p: np.ndarray,
+    depth: np.ndarray,
+    rid: np.ndarray,
+    gap2: np.ndarray,
+    same_next: np.ndarray,
+    cfg: FeatureConfig,
+) -> np.ndarray:
+    """(n,) LOAM's rejections: points beside an occlusion edge (the far side's window) and
+    points on surfaces nearly parallel to the beam (both consecutive squared gaps large)."""
+    w = cfg.window
+    picked = np.zeros(len(p), dtype=bool)
     if cfg.reject_occluded:
         jump = same_next & (gap2 > cfg.occlusion_gap)
         d1, d2 = depth, np.r_[depth[1:], 1.0]
@@ -342,6 +348,29 @@ def _extract_features_numpy(
         prev_gap2 = np.r_[np.inf, gap2[:-1]]
         lim = cfg.parallel_ratio * depth**2
         picked |= (gap2 > lim) & (prev_gap2 > lim) & same_next & np.r_[False, same_next[:-1]]
+    return picked
+
+
+def _extract_features_numpy(
+    xyz: np.ndarray, ring: np.ndarray, cfg: FeatureConfig, azimuth_order: np.ndarray | None
+) -> Features:
+    """The vectorised numpy reference of ``extract_features`` (checked arguments)."""
+    n_all = len(xyz)
+    curvature_all = np.full(n_all, np.nan)
+    w = cfg.window
+    rng_all = np.linalg.norm(xyz, axis=1)
+    use = np.flatnonzero((ring >= 0) & (rng_all >= cfg.min_range) & (rng_all <= cfg.max_range))
+    use_kappa = cfg.use_covariance_curvature and n_all >= 2
+    kappa_all = np.full(n_all, np.nan) if use_kappa else None
+    if use.size == 0:
+        return Features(_empty_idx(), _empty_idx(), curvature_all, kappa=kappa_all)
+
+    order, rid, pos, nr = _ring_sorted(xyz, ring, use, azimuth_order)
+    p = xyz[order]
+    c, valid = _ring_curvature(p, pos, nr, w)
+    curvature_all[order] = c
+    gap2, same_next = _next_gaps(p, rid)
+    picked = ~valid | _loam_rejected(p, rng_all[order], rid, gap2, same_next, cfg)
 
     # sectors and suppression runs (a run ends at a squared gap > neighbor_gap or a ring end)
     span = np.maximum(nr - 2 * w, 1)
@@ -357,16 +386,12 @@ def _extract_features_numpy(
     sel = sel[edge_ok[sel]]  # a rejected pseudo-edge is not replaced by its neighbours
     rank = _group_rank(sector[sel], cv[sel])
     less_sharp = sel[rank < cfg.max_less_sharp]
-    is_edge = np.zeros(n, dtype=bool)
+    is_edge = np.zeros(len(p), dtype=bool)
     is_edge[less_sharp] = True
     less_flat = np.flatnonzero(plane_cand & ~is_edge & plane_ok)
-
-    def back(i: np.ndarray) -> np.ndarray:
-        return np.sort(order[i])
-
     return Features(
-        edge_idx=back(less_sharp),
-        plane_idx=back(less_flat),
+        edge_idx=np.sort(order[less_sharp]),
+        plane_idx=np.sort(order[less_flat]),
         curvature=curvature_all,
         kappa=kappa_all,
     )

@@ -350,6 +350,71 @@ def _label_reference(rng_img, valid, alpha_row, alpha_col, tan_theta, min_pts, m
     return labels.reshape(R, C)
 
 
+def _checked_inputs(
+    xyz: np.ndarray, ring: np.ndarray | None, ground: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz, ring) as arrays; InputError for a wrong shape or a missing ring."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
+    n = len(xyz)
+    if ring is None:
+        raise InputError("range-image segmentation needs the beam (ring) of every point")
+    ring = np.asarray(ring)
+    if ring.shape != (n,):
+        raise InputError(f"ring must have shape ({n},), got {ring.shape}")
+    if ground is not None and np.shape(ground) != (n,):
+        raise InputError(f"ground mask must have shape ({n},), got {np.shape(ground)}")
+    return xyz, ring
+
+
+def _ground_image(
+    sub: np.ndarray,
+    owner: np.ndarray,
+    row_elev: np.ndarray,
+    ground_sub: np.ndarray | None,
+    cfg: SegmentationConfig,
+) -> np.ndarray:
+    """(rows, cols) bool ground cells: the slope test, or the given per-point mask read at
+    each cell's owner point."""
+    if ground_sub is None:
+        return mark_ground(sub, owner, row_elev, cfg)
+    ground_img = np.zeros(owner.shape, dtype=bool)
+    held = owner >= 0
+    ground_img[held] = ground_sub[owner[held]]
+    return ground_img
+
+
+def _cluster_labels(
+    sub: np.ndarray,
+    owner: np.ndarray,
+    valid: np.ndarray,
+    row_elev: np.ndarray,
+    n_cols: int,
+    cfg: SegmentationConfig,
+) -> np.ndarray:
+    """(rows, cols) int32 cluster label of each valid cell (LeGO-LOAM's angle criterion on the
+    range image, m; 0 = dropped); every valid cell is 1 when segmentation is disabled."""
+    if not cfg.enabled:
+        return valid.astype(np.int32)
+    rng_img = np.zeros(owner.shape)
+    has = owner >= 0
+    rng_img[has] = np.linalg.norm(sub[owner[has]], axis=1)
+    alpha_row = np.radians(np.maximum(np.diff(row_elev), 1e-3))
+    if len(alpha_row) == 0:
+        alpha_row = np.zeros(1)
+    return _label_kernel(
+        rng_img,
+        valid,
+        alpha_row,
+        2 * np.pi / n_cols,
+        np.tan(np.radians(cfg.segment_theta_deg)),
+        cfg.min_cluster_points,
+        cfg.min_line_points,
+        cfg.min_cluster_rows,
+    )
+
+
 def segment(
     xyz: np.ndarray,
     ring: np.ndarray | None,
@@ -362,56 +427,24 @@ def segment(
     LeGO-LOAM-LPB) used instead of the slope test. With ``cfg.enabled`` False no cluster is
     dropped (every non-ground point gets label 1). Raises InputError without a ring."""
     cfg = cfg or SegmentationConfig()
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise InputError(f"points must be an (N, 3) array, got shape {xyz.shape}")
+    xyz, ring = _checked_inputs(xyz, ring, ground)
     n = len(xyz)
-    if ring is None:
-        raise InputError("range-image segmentation needs the beam (ring) of every point")
-    ring = np.asarray(ring)
-    if ring.shape != (n,):
-        raise InputError(f"ring must have shape ({n},), got {ring.shape}")
     label = np.full(n, LABEL_UNPROJECTED, dtype=np.int32)
     ground_pts = np.zeros(n, dtype=bool)
-    if ground is not None and np.shape(ground) != (n,):
-        raise InputError(f"ground mask must have shape ({n},), got {np.shape(ground)}")
     use = np.flatnonzero(ring >= 0)
     if use.size == 0:
         z = np.zeros(n, dtype=np.int64)
         return Segmentation(ground_pts, label, z, z, max(cfg.n_columns, 1), np.zeros(0))
     sub = xyz[use]
+    g = None if ground is None else np.asarray(ground, dtype=bool)[use]
     row_s, col_s, owner, n_cols, row_elev = project(sub, ring[use], cfg.n_columns)
-    if ground is None:
-        ground_img = mark_ground(sub, owner, row_elev, cfg)
-    else:
-        ground_img = np.zeros(owner.shape, dtype=bool)
-        held = owner >= 0
-        ground_img[held] = np.asarray(ground, dtype=bool)[use][owner[held]]
+    ground_img = _ground_image(sub, owner, row_elev, g, cfg)
     valid = (owner >= 0) & ~ground_img
-    rng_img = np.zeros(owner.shape)
-    has = owner >= 0
-    rng_img[has] = np.linalg.norm(sub[owner[has]], axis=1)
-    alpha_row = np.radians(np.maximum(np.diff(row_elev), 1e-3))
-    if len(alpha_row) == 0:
-        alpha_row = np.zeros(1)
-    if not cfg.enabled:
-        labels = valid.astype(np.int32)
-    else:
-        labels = _label_kernel(
-            rng_img,
-            valid,
-            alpha_row,
-            2 * np.pi / n_cols,
-            np.tan(np.radians(cfg.segment_theta_deg)),
-            cfg.min_cluster_points,
-            cfg.min_line_points,
-            cfg.min_cluster_rows,
-        )
+    labels = _cluster_labels(sub, owner, valid, row_elev, n_cols, cfg)
     # every point takes its cell's label (a point that lost the cell to a nearer return of
     # the same beam and azimuth step lies on the same surface or just behind it)
     lab_sub = np.where(ground_img, LABEL_GROUND, labels)[row_s, col_s].astype(np.int32)
-    if ground is not None:  # the given mask decides each point, not its cell's owner
-        g = np.asarray(ground, dtype=bool)[use]
+    if g is not None:  # the given mask decides each point, not its cell's owner
         lab_sub = np.where(g, LABEL_GROUND, np.where(lab_sub == LABEL_GROUND, 1, lab_sub))
     label[use] = lab_sub
     ground_pts[use] = lab_sub == LABEL_GROUND

@@ -104,14 +104,9 @@ def parse_header(buf: bytes, where: str = "PCD") -> PcdHeader:
     )
 
 
-def read_pcd_columns(
-    buf: bytes, where: str = "PCD", notes: Notes | None = None
-) -> tuple[PcdHeader, dict[str, np.ndarray]]:
-    """Header and one (POINTS,) column per readable field (first element of COUNT > 1;
-    other fields of unknown TYPE/SIZE are left out, noted in ``notes``; on x/y/z they are
-    a FrameError). ``data`` "binary_compressed" raises NotImplementedError (read it with
-    open3d); other problems raise FrameError."""
-    h = parse_header(buf, where)
+def _check_fields(h: PcdHeader, where: str, notes: Notes | None) -> None:
+    """FrameError for repeated names or an unknown TYPE/SIZE on x/y/z; other unknown fields
+    are noted (they are dropped)."""
     if len(set(h.names)) != len(h.names):
         raise FrameError(CORRUPT_FILE, f"{where}: PCD FIELDS repeat a name: {list(h.names)}")
     for name, t, code, size in zip(h.names, h.types, h.codes, h.sizes, strict=True):
@@ -121,52 +116,75 @@ def read_pcd_columns(
                 raise FrameError(BAD_DATATYPE, f"{where}: {problem}")
             if notes is not None:
                 notes.add(f"{problem}: field dropped")
+
+
+def _binary_columns(h: PcdHeader, body: memoryview, where: str) -> dict[str, np.ndarray]:
+    """One column per readable field of ``data binary``: a strided record view of the body,
+    no copy; FrameError when the body is shorter than POINTS records."""
+    step = sum(s * c for s, c in zip(h.sizes, h.counts, strict=True))
+    need = h.points * step
+    if len(body) < need:
+        raise FrameError(
+            CORRUPT_FILE,
+            f"{where}: PCD data has {len(body)} bytes, POINTS {h.points} x {step} bytes "
+            f"need {need}: truncated file",
+        )
+    names, formats, offsets, off = [], [], [], 0
+    for name, code, size, count in zip(h.names, h.codes, h.sizes, h.counts, strict=True):
+        if code is not None:
+            names.append(name)
+            formats.append("<" + code)
+            offsets.append(off)
+        off += size * count
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    rec = np.frombuffer(body, dtype=dtype, count=h.points)
+    return {n: rec[n] for n in names}
+
+
+def _ascii_columns(h: PcdHeader, body: memoryview, where: str) -> dict[str, np.ndarray]:
+    """One column per readable field of ``data ascii`` (float64, or the field's integer type);
+    FrameError for non-text, too few or unparsable values."""
+    ncols = sum(h.counts)
+    try:
+        text = bytes(body).decode("ascii")
+    except UnicodeDecodeError:
+        raise FrameError(CORRUPT_FILE, f"{where}: PCD ascii data is not text") from None
+    tokens = text.split(maxsplit=h.points * ncols)[: h.points * ncols]
+    if len(tokens) < h.points * ncols:
+        raise FrameError(
+            CORRUPT_FILE,
+            f"{where}: PCD ascii data has {len(tokens)} values, POINTS {h.points} x "
+            f"{ncols} need {h.points * ncols}: truncated file",
+        )
+    try:
+        table = np.array(tokens, dtype=np.float64).reshape(h.points, ncols)
+    except ValueError as exc:
+        raise FrameError(CORRUPT_FILE, f"{where}: PCD ascii data: {exc}") from None
+    cols, first = {}, 0
+    for name, code, count in zip(h.names, h.codes, h.counts, strict=True):
+        if code is not None:
+            col = table[:, first]
+            cols[name] = col if code[0] == "f" else _as_int(col, code)
+        first += count
+    return cols
+
+
+def read_pcd_columns(
+    buf: bytes, where: str = "PCD", notes: Notes | None = None
+) -> tuple[PcdHeader, dict[str, np.ndarray]]:
+    """Header and one (POINTS,) column per readable field (first element of COUNT > 1;
+    other fields of unknown TYPE/SIZE are left out, noted in ``notes``; on x/y/z they are
+    a FrameError). ``data`` "binary_compressed" raises NotImplementedError (read it with
+    open3d); other problems raise FrameError."""
+    h = parse_header(buf, where)
+    _check_fields(h, where, notes)
     if h.data == "binary_compressed":
         raise NotImplementedError("binary_compressed")
     body = memoryview(buf)[h.data_offset :]
     if h.data == "binary":
-        step = sum(s * c for s, c in zip(h.sizes, h.counts, strict=True))
-        need = h.points * step
-        if len(body) < need:
-            raise FrameError(
-                CORRUPT_FILE,
-                f"{where}: PCD data has {len(body)} bytes, POINTS {h.points} x {step} bytes "
-                f"need {need}: truncated file",
-            )
-        names, formats, offsets, off = [], [], [], 0
-        for name, code, size, count in zip(h.names, h.codes, h.sizes, h.counts, strict=True):
-            if code is not None:
-                names.append(name)
-                formats.append("<" + code)
-                offsets.append(off)
-            off += size * count
-        dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
-        rec = np.frombuffer(body, dtype=dtype, count=h.points)
-        return h, {n: rec[n] for n in names}
+        return h, _binary_columns(h, body, where)
     if h.data == "ascii":
-        ncols = sum(h.counts)
-        try:
-            text = bytes(body).decode("ascii")
-        except UnicodeDecodeError:
-            raise FrameError(CORRUPT_FILE, f"{where}: PCD ascii data is not text") from None
-        tokens = text.split(maxsplit=h.points * ncols)[: h.points * ncols]
-        if len(tokens) < h.points * ncols:
-            raise FrameError(
-                CORRUPT_FILE,
-                f"{where}: PCD ascii data has {len(tokens)} values, POINTS {h.points} x "
-                f"{ncols} need {h.points * ncols}: truncated file",
-            )
-        try:
-            table = np.array(tokens, dtype=np.float64).reshape(h.points, ncols)
-        except ValueError as exc:
-            raise FrameError(CORRUPT_FILE, f"{where}: PCD ascii data: {exc}") from None
-        cols, first = {}, 0
-        for name, code, count in zip(h.names, h.codes, h.counts, strict=True):
-            if code is not None:
-                col = table[:, first]
-                cols[name] = col if code[0] == "f" else _as_int(col, code)
-            first += count
-        return h, cols
+        return h, _ascii_columns(h, body, where)
     raise FrameError(CORRUPT_FILE, f"{where}: unknown PCD DATA kind {h.data!r}")
 
 

@@ -66,7 +66,7 @@ class ScanStream:
     ) -> None:
         self.config, self.max_frames, self.strict = config, max_frames, strict
         self.stats = stats if stats is not None else StreamStats()
-        self.beams: Any = None  # slam.sensor.BeamModel once estimated; False: none
+        self.beams: Any = None  # slam.sensor.beam_model.BeamModel once estimated; False: none
         notes = getattr(scans, "notes", None)
         self._notes = notes if isinstance(notes, list) else None  # a clock step is noted
         use_stamps = getattr(scans, "use_stamps", None)  # bags: header or record time
@@ -127,7 +127,7 @@ class ScanStream:
     def _estimate_beams(self, scans: list[Scan]) -> None:
         """The beam table from the first scans: the ring field when the driver gives one,
         else the point layout / elevation histogram (slam.sensor). Logged once."""
-        from slam.sensor import beams_from_rings, estimate_beams
+        from slam.sensor.beam_table import beams_from_rings, estimate_beams
 
         scans = [s for s in scans if len(s) >= 100]  # empty / nearly empty scans tell nothing
         try:

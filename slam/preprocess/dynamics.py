@@ -241,6 +241,96 @@ def _static_alignment(
     return A
 
 
+def _checked_prev(prev_centroids: np.ndarray) -> np.ndarray:
+    """(M, len(STATE_COLUMNS)) previous state; bare (M, 3) centroids become tracks of unknown
+    count (0) starting at the centroid; InputError for any other shape."""
+    prev = np.asarray(prev_centroids, dtype=np.float64)
+    if prev.ndim != 2 or prev.shape[1] not in (3, len(STATE_COLUMNS)):
+        raise InputError(
+            f"prev_centroids must be (M, 3) or (M, {len(STATE_COLUMNS)}), got {prev.shape}"
+        )
+    if prev.shape[1] == 3:
+        prev = np.column_stack([prev, np.zeros(len(prev)), prev, np.zeros(len(prev))])
+    return prev
+
+
+def _prev_in_current(
+    prev: np.ndarray,
+    T_prev_curr: np.ndarray,
+    centroids: np.ndarray,
+    counts: np.ndarray,
+    extent: np.ndarray,
+    basis: np.ndarray,
+    cfg: DynamicsConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(prev_c, prev_anchor): the previous centroids and track anchors (m) moved into this
+    scan's frame by the odometry, refined by the static clusters' alignment when enabled."""
+    T = np.asarray(T_prev_curr, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"T_prev_curr must be 4x4, got shape {T.shape}")
+    T_curr_prev = np.linalg.inv(T)
+    R, t = T_curr_prev[:3, :3], T_curr_prev[:3, 3]
+    prev_c = prev[:, :3] @ R.T + t
+    prev_anchor = prev[:, 4:7] @ R.T + t
+    if cfg.refine_motion:
+        A = _static_alignment(prev_c, centroids, counts, extent, basis, cfg)
+        prev_c, prev_anchor = prev_c @ A[:3, :3].T + A[:3, 3], prev_anchor @ A[:3, :3].T + A[:3, 3]
+    return prev_c, prev_anchor
+
+
+def _match_tracks(
+    prev: np.ndarray,
+    prev_c: np.ndarray,
+    centroids: np.ndarray,
+    counts: np.ndarray,
+    basis: np.ndarray,
+    cfg: DynamicsConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(matched, j): whether each cluster continues previous track j: horizontally within
+    match_radius (m), of similar point count, and the nearest cluster to that track."""
+    dist, j = cKDTree(prev_c @ basis.T).query(centroids @ basis.T, k=1)
+    matched = dist <= cfg.match_radius
+    prev_count = prev[j, 3]
+    has_count = prev_count > 0
+    ratio = counts / np.maximum(prev_count, 1.0)
+    similar = (ratio <= cfg.max_count_ratio) & (ratio >= 1.0 / cfg.max_count_ratio)
+    matched &= similar | ~has_count
+    # one track per previous cluster: the nearest current cluster continues it
+    best = np.full(len(prev), np.inf)
+    np.minimum.at(best, j[matched], dist[matched])
+    matched &= dist <= best[j]
+    return matched, j
+
+
+def _advance_tracks(
+    state: np.ndarray,
+    centroids: np.ndarray,
+    extent: np.ndarray,
+    matched: np.ndarray,
+    basis: np.ndarray,
+    cfg: DynamicsConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(state, moving): the tracks' anchors forgotten past track_window scans, and which
+    matched clusters moved far enough (m) and fast enough (m per scan) to be dynamic."""
+    state = state.copy()
+    age = state[:, 7].copy()
+    reach = np.linalg.norm(centroids @ basis.T, axis=1)  # horizontal range (m)
+    moved = np.linalg.norm((centroids - state[:, 4:7]) @ basis.T, axis=1)
+    # the anchor forgets: past track_window scans it trails the centroid exponentially, so a
+    # walker turning back is still measured over about the last window (lag v * window)
+    old = age > cfg.track_window
+    state[old, 4:7] += (centroids[old] - state[old, 4:7]) / cfg.track_window
+    state[old, 7] = cfg.track_window
+    age = np.minimum(age, cfg.track_window)
+    moving = (
+        matched
+        & (moved >= np.maximum(cfg.min_displacement, cfg.displacement_per_m * reach))
+        & (moved >= cfg.motion_threshold * np.maximum(age, 1))
+        & (extent <= cfg.max_extent)
+    )
+    return state, moving
+
+
 def remove_dynamic(
     xyz_nonground: np.ndarray,
     prev_centroids: np.ndarray | None,
@@ -274,51 +364,12 @@ def remove_dynamic(
     keep = np.ones(len(xyz), dtype=bool)
     if prev_centroids is None or len(prev_centroids) == 0 or not len(state):
         return keep, state
-    prev = np.asarray(prev_centroids, dtype=np.float64)
-    if prev.ndim != 2 or prev.shape[1] not in (3, len(STATE_COLUMNS)):
-        raise InputError(
-            f"prev_centroids must be (M, 3) or (M, {len(STATE_COLUMNS)}), got {prev.shape}"
-        )
-    if prev.shape[1] == 3:
-        prev = np.column_stack([prev, np.zeros(len(prev)), prev, np.zeros(len(prev))])
-    T = np.asarray(T_prev_curr, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise InputError(f"T_prev_curr must be 4x4, got shape {T.shape}")
-    T_curr_prev = np.linalg.inv(T)
-    R, t = T_curr_prev[:3, :3], T_curr_prev[:3, 3]
-    prev_c = prev[:, :3] @ R.T + t
-    prev_anchor = prev[:, 4:7] @ R.T + t
-    if cfg.refine_motion:
-        A = _static_alignment(prev_c, centroids, counts, extent, basis, cfg)
-        prev_c, prev_anchor = prev_c @ A[:3, :3].T + A[:3, 3], prev_anchor @ A[:3, :3].T + A[:3, 3]
-    dist, j = cKDTree(prev_c @ basis.T).query(centroids @ basis.T, k=1)
-    matched = dist <= cfg.match_radius
-    prev_count = prev[j, 3]
-    has_count = prev_count > 0
-    ratio = counts / np.maximum(prev_count, 1.0)
-    similar = (ratio <= cfg.max_count_ratio) & (ratio >= 1.0 / cfg.max_count_ratio)
-    matched &= similar | ~has_count
-    # one track per previous cluster: the nearest current cluster continues it
-    best = np.full(len(prev), np.inf)
-    np.minimum.at(best, j[matched], dist[matched])
-    matched &= dist <= best[j]
+    prev = _checked_prev(prev_centroids)
+    prev_c, prev_anchor = _prev_in_current(prev, T_prev_curr, centroids, counts, extent, basis, cfg)
+    matched, j = _match_tracks(prev, prev_c, centroids, counts, basis, cfg)
     state[matched, 4:7] = prev_anchor[j[matched]]
     state[matched, 7] = prev[j[matched], 7] + 1
-    age = state[:, 7].copy()
-    reach = np.linalg.norm(centroids @ basis.T, axis=1)  # horizontal range (m)
-    moved = np.linalg.norm((centroids - state[:, 4:7]) @ basis.T, axis=1)
-    # the anchor forgets: past track_window scans it trails the centroid exponentially, so a
-    # walker turning back is still measured over about the last window (lag v * window)
-    old = age > cfg.track_window
-    state[old, 4:7] += (centroids[old] - state[old, 4:7]) / cfg.track_window
-    state[old, 7] = cfg.track_window
-    age = np.minimum(age, cfg.track_window)
-    moving = (
-        matched
-        & (moved >= np.maximum(cfg.min_displacement, cfg.displacement_per_m * reach))
-        & (moved >= cfg.motion_threshold * np.maximum(age, 1))
-        & (extent <= cfg.max_extent)
-    )
+    state, moving = _advance_tracks(state, centroids, extent, matched, basis, cfg)
     if cfg.enabled and moving.any():
         clustered = labels >= 0
         keep[clustered] = ~moving[labels[clustered]]

@@ -115,6 +115,61 @@ def _bad_kernel(
     return bad
 
 
+def _intensity_tolerance(
+    intensity: np.ndarray | None, order: np.ndarray, n: int, cfg: JumpOutlierConfig
+) -> tuple[np.ndarray | None, float]:
+    """(inten, tol): the intensities in ring order and the largest jump (intensity units) to a
+    neighbour that still agrees, intensity_jump x the scan's intensity_quantile; inten None
+    when the intensity test is off, absent, all zero or not finite."""
+    if not (cfg.use_intensity and intensity is not None):
+        return None, 0.0
+    inten = np.asarray(intensity, dtype=np.float64).reshape(-1)
+    if len(inten) != n:
+        raise InputError(f"intensity has {len(inten)} entries for {n} points")
+    inten = inten[order]
+    scale = float(np.quantile(inten, cfg.intensity_quantile))
+    if not (scale > 0 and np.all(np.isfinite(inten))):
+        return None, 0.0
+    return inten, cfg.intensity_jump * scale
+
+
+def _bad_reference(
+    r: np.ndarray,
+    az: np.ndarray,
+    inten: np.ndarray | None,
+    start: np.ndarray,
+    size: np.ndarray,
+    int_tol: float,
+    cfg: JumpOutlierConfig,
+) -> np.ndarray:
+    """(N,) spikes in ring order, the numpy statement of ``_bad_kernel``: a point with at
+    least min_neighbours comparable ring neighbours (within max_gap_deg of azimuth) of which
+    fewer than min_agree agree in range (m) (and in intensity when given)."""
+    n = len(r)
+    pos = np.arange(n) - start
+    max_gap = np.radians(cfg.max_gap_deg)
+    range_tol = np.maximum(cfg.range_jump_abs, cfg.range_jump_rel * r)
+    comparable = np.zeros(n, dtype=np.int32)
+    agree_r = np.zeros(n, dtype=np.int32)
+    agree_i = np.zeros(n, dtype=np.int32)
+    for s in range(-cfg.window, cfg.window + 1):
+        if s == 0:
+            continue
+        j = start + np.mod(pos + s, size)  # circular along the ring (the seam wraps)
+        gap = np.abs(np.angle(np.exp(1j * (az[j] - az))))
+        valid = (gap <= max_gap) & (np.abs(s) < size)
+        comparable += valid
+        same = valid & (np.abs(r[j] - r) <= range_tol)
+        agree_r += same
+        if inten is not None:
+            agree_i += same & (np.abs(inten[j] - inten) <= int_tol)
+    judged = comparable >= cfg.min_neighbours
+    bad = judged & (agree_r < cfg.min_agree)
+    if inten is not None:
+        bad |= judged & (agree_i < cfg.min_agree)
+    return bad
+
+
 def jump_outlier_mask(
     xyz: np.ndarray,
     intensity: np.ndarray | None,
@@ -147,53 +202,24 @@ def jump_outlier_mask(
     r = rng[order]
     az = azimuth[order]
     start, size = start_size[:, 0], start_size[:, 1]
-    pos = np.arange(n) - start
-    use_int = cfg.use_intensity and intensity is not None
-    if use_int:
-        inten = np.asarray(intensity, dtype=np.float64).reshape(-1)
-        if len(inten) != n:
-            raise InputError(f"intensity has {len(inten)} entries for {n} points")
-        inten = inten[order]
-        scale = float(np.quantile(inten, cfg.intensity_quantile))
-        use_int = scale > 0 and np.all(np.isfinite(inten))
-        int_tol = cfg.intensity_jump * scale
-    max_gap = np.radians(cfg.max_gap_deg)
-    if not reference:
+    inten, int_tol = _intensity_tolerance(intensity, order, n, cfg)
+    if reference:
+        bad = _bad_reference(r, az, inten, start, size, int_tol, cfg)
+    else:
         bad = _bad_kernel(
             r,
             az,
-            inten if use_int else np.zeros(1),
+            inten if inten is not None else np.zeros(1),
             start.astype(np.int64),
             size.astype(np.int64),
             int(cfg.window),
-            float(max_gap),
+            float(np.radians(cfg.max_gap_deg)),
             float(cfg.range_jump_abs),
             float(cfg.range_jump_rel),
-            float(int_tol) if use_int else 0.0,
-            bool(use_int),
+            float(int_tol),
+            inten is not None,
             int(cfg.min_agree),
             int(cfg.min_neighbours),
         )
-        keep[order[bad]] = False
-        return keep
-    range_tol = np.maximum(cfg.range_jump_abs, cfg.range_jump_rel * r)
-    comparable = np.zeros(n, dtype=np.int32)
-    agree_r = np.zeros(n, dtype=np.int32)
-    agree_i = np.zeros(n, dtype=np.int32)
-    for s in range(-cfg.window, cfg.window + 1):
-        if s == 0:
-            continue
-        j = start + np.mod(pos + s, size)  # circular along the ring (the seam wraps)
-        gap = np.abs(np.angle(np.exp(1j * (az[j] - az))))
-        valid = (gap <= max_gap) & (np.abs(s) < size)
-        comparable += valid
-        same = valid & (np.abs(r[j] - r) <= range_tol)
-        agree_r += same
-        if use_int:
-            agree_i += same & (np.abs(inten[j] - inten) <= int_tol)
-    judged = comparable >= cfg.min_neighbours
-    bad = judged & (agree_r < cfg.min_agree)
-    if use_int:
-        bad |= judged & (agree_i < cfg.min_agree)
     keep[order[bad]] = False
     return keep

@@ -74,6 +74,67 @@ def _cells(xy: np.ndarray, res: float) -> np.ndarray:
     return np.unique(np.floor(xy / res).astype(np.int64), axis=0)
 
 
+def _likelihood_field(
+    reference: np.ndarray, res: float, k: int, sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(field, lo): exp(-d^2 / 2 sigma^2) of the distance d (m) to the nearest reference cell
+    on a grid of ``res`` (m) cells (rows = y, cols = x) padded for shifts of +-k cells, and
+    the (x, y) cell of its corner."""
+    ref_cells = _cells(reference, res)
+    pad = k + int(np.ceil(3 * sigma / res)) + 2
+    lo = ref_cells.min(axis=0) - pad
+    hi = ref_cells.max(axis=0) + pad
+    occ = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), dtype=bool)  # (rows=y, cols=x)
+    occ[ref_cells[:, 1] - lo[1], ref_cells[:, 0] - lo[0]] = True
+    dist = ndimage.distance_transform_edt(~occ) * res
+    return np.exp(-0.5 * (dist / sigma) ** 2), lo
+
+
+def _shift_scores(
+    field: np.ndarray,
+    lo: np.ndarray,
+    target: np.ndarray,
+    theta: float,
+    centre: np.ndarray,
+    k: int,
+    res: float,
+) -> np.ndarray:
+    """(2k+1, 2k+1) (dy, dx) mean field value of the target's cells rotated by theta (rad),
+    for every shift of -k..k cells around the ``centre`` cell, by one FFT correlation."""
+    cells = _cells(transform2d(np.array([0.0, 0.0, theta]), target), res)
+    c_lo = cells.min(axis=0)
+    c_hi = cells.max(axis=0)
+    img = np.zeros((c_hi[1] - c_lo[1] + 1, c_hi[0] - c_lo[0] + 1))
+    img[cells[:, 1] - c_lo[1], cells[:, 0] - c_lo[0]] = 1.0
+    # score(s) = sum_h img[h] field[h + c_lo + centre + s - lo], s in [-k, k]^2
+    start = c_lo + centre - k - lo  # (x, y) offset into the field of shift -k
+    rows = slice(start[1], start[1] + 2 * k + img.shape[0])
+    cols = slice(start[0], start[0] + 2 * k + img.shape[1])
+    window = np.zeros((2 * k + img.shape[0], 2 * k + img.shape[1]))
+    r0, c0 = max(rows.start, 0), max(cols.start, 0)
+    r1, c1 = min(rows.stop, field.shape[0]), min(cols.stop, field.shape[1])
+    if r1 > r0 and c1 > c0:
+        window[r0 - rows.start : r1 - rows.start, c0 - cols.start : c1 - cols.start] = field[
+            r0:r1, c0:c1
+        ]
+    corr = fftconvolve(window, img[::-1, ::-1], mode="valid")  # (2k+1, 2k+1)
+    return corr / len(cells)
+
+
+def _second_peak(
+    scores: np.ndarray, best: tuple[int, int, int], k: int, cfg: CorrelativeConfig
+) -> float:
+    """Best score of the (angle, dy, dx) volume outside the separation neighbourhood of the
+    peak ``best`` (separation_deg in rotation, separation_m in translation)."""
+    a, dy, dx = best
+    ia = np.abs(np.arange(len(scores)) - a) * cfg.angle_step_deg < cfg.separation_deg
+    yy, xx = np.mgrid[-k : k + 1, -k : k + 1]
+    near = np.hypot(yy - (dy - k), xx - (dx - k)) * cfg.resolution < cfg.separation_m
+    masked = scores.copy()
+    masked[ia] *= ~near[None]
+    return float(masked.max())
+
+
 def correlative_search(
     reference: np.ndarray,
     target: np.ndarray,
@@ -104,48 +165,16 @@ def correlative_search(
         )
     res = cfg.resolution
     k = int(np.ceil(cfg.max_shift / res))  # shifts -k..k cells per axis
-    ref_cells = _cells(reference, res)
-    pad = k + int(np.ceil(3 * cfg.sigma / res)) + 2
-    lo = ref_cells.min(axis=0) - pad
-    hi = ref_cells.max(axis=0) + pad
-    occ = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), dtype=bool)  # (rows=y, cols=x)
-    occ[ref_cells[:, 1] - lo[1], ref_cells[:, 0] - lo[0]] = True
-    dist = ndimage.distance_transform_edt(~occ) * res
-    field = np.exp(-0.5 * (dist / cfg.sigma) ** 2)
-
+    field, lo = _likelihood_field(reference, res, k, cfg.sigma)
     n_ang = int(np.floor(cfg.max_angle_deg / cfg.angle_step_deg))
     angles = guess[2] + np.radians(cfg.angle_step_deg) * np.arange(-n_ang, n_ang + 1)
     centre = np.floor(guess[:2] / res).astype(np.int64)  # cell of the guess translation
     scores = np.zeros((len(angles), 2 * k + 1, 2 * k + 1))  # (angle, dy, dx)
     for a, theta in enumerate(angles):
-        cells = _cells(transform2d(np.array([0.0, 0.0, theta]), target), res)
-        c_lo = cells.min(axis=0)
-        c_hi = cells.max(axis=0)
-        img = np.zeros((c_hi[1] - c_lo[1] + 1, c_hi[0] - c_lo[0] + 1))
-        img[cells[:, 1] - c_lo[1], cells[:, 0] - c_lo[0]] = 1.0
-        # score(s) = sum_h img[h] field[h + c_lo + centre + s - lo], s in [-k, k]^2
-        start = c_lo + centre - k - lo  # (x, y) offset into the field of shift -k
-        rows = slice(start[1], start[1] + 2 * k + img.shape[0])
-        cols = slice(start[0], start[0] + 2 * k + img.shape[1])
-        window = np.zeros((2 * k + img.shape[0], 2 * k + img.shape[1]))
-        r0, c0 = max(rows.start, 0), max(cols.start, 0)
-        r1, c1 = min(rows.stop, field.shape[0]), min(cols.stop, field.shape[1])
-        if r1 > r0 and c1 > c0:
-            window[r0 - rows.start : r1 - rows.start, c0 - cols.start : c1 - cols.start] = field[
-                r0:r1, c0:c1
-            ]
-        corr = fftconvolve(window, img[::-1, ::-1], mode="valid")  # (2k+1, 2k+1)
-        scores[a] = corr / len(cells)
+        scores[a] = _shift_scores(field, lo, target, theta, centre, k, res)
     best = np.unravel_index(int(np.argmax(scores)), scores.shape)
     a, dy, dx = best
-    score = float(scores[best])
     # the rotation about the target origin, then the shift (whole cells)
     shift = (centre + np.array([dx - k, dy - k])) * res
     pose = np.array([shift[0], shift[1], float(angles[a])])
-    # uniqueness: best score outside the separation neighbourhood of the peak
-    ia = np.abs(np.arange(len(angles)) - a) * cfg.angle_step_deg < cfg.separation_deg
-    yy, xx = np.mgrid[-k : k + 1, -k : k + 1]
-    near = np.hypot(yy - (dy - k), xx - (dx - k)) * res < cfg.separation_m
-    masked = scores.copy()
-    masked[ia] *= ~near[None]
-    return CorrelativeResult(pose, score, float(masked.max()))
+    return CorrelativeResult(pose, float(scores[best]), _second_peak(scores, best, k, cfg))

@@ -110,9 +110,35 @@ class _Neighbourhoods:
 
 
 def _huber(r: np.ndarray, delta: float) -> np.ndarray:
+    """(N,) Huber IRLS weight of residuals r (m): 1 within delta, delta / r beyond."""
     if delta <= 0:
         return np.ones_like(r)
     return np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
+
+
+Terms = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # (p, q, W, |residual|)
+
+
+def _edge_terms(edges: np.ndarray, moved: np.ndarray, nh, cfg: FeatureIcpConfig) -> Terms:
+    """Point-to-line terms of the edge points whose map neighbourhood is a line (largest
+    eigenvalue > edge_ratio x the middle one): W = I - v v^T, residual |W (p - c)| (m)."""
+    ok, c, w, V, _ = nh
+    line = w[:, 2] > cfg.edge_ratio * w[:, 1]
+    v = V[line, :, 2]
+    P = np.eye(3) - v[:, :, None] * v[:, None, :]
+    e = np.einsum("nij,nj->ni", P, moved[ok][line] - c[line])
+    return edges[ok][line], c[line], P, np.linalg.norm(e, axis=1)
+
+
+def _plane_terms(planes: np.ndarray, moved: np.ndarray, nh, cfg: FeatureIcpConfig) -> Terms:
+    """Point-to-plane terms of the plane points whose map neighbours all lie within
+    plane_threshold (m) of their plane: W = n n^T, residual |n . (p - c)| (m)."""
+    ok, c, w, V, centred = nh
+    n = V[:, :, 0]
+    flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
+    n = n[flat]
+    r = np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n))
+    return planes[ok][flat], c[flat], n[:, :, None] * n[:, None, :], r
 
 
 def feature_icp_align(
@@ -131,37 +157,22 @@ def feature_icp_align(
         raise RegistrationError(
             f"feature ICP needs at least 6 feature points, got {len(edges) + len(planes)}"
         )
-    eye = np.eye(3)
     edge_nh = _Neighbourhoods(edge_map, len(edges), cfg)
     plane_nh = _Neighbourhoods(plane_map, len(planes), cfg)
 
     def associate(T):
-        ps, qs, Ws, rs = [], [], [], []
+        terms = []
         moved = transform(T, edges)
         nh = edge_nh(moved)
         if nh is not None:
-            ok, c, w, V, _ = nh
-            line = w[:, 2] > cfg.edge_ratio * w[:, 1]
-            v = V[line, :, 2]
-            P = eye - v[:, :, None] * v[:, None, :]
-            e = np.einsum("nij,nj->ni", P, moved[ok][line] - c[line])
-            ps.append(edges[ok][line])
-            qs.append(c[line])
-            Ws.append(P)
-            rs.append(np.linalg.norm(e, axis=1))
+            terms.append(_edge_terms(edges, moved, nh, cfg))
         moved = transform(T, planes)
         nh = plane_nh(moved)
         if nh is not None:
-            ok, c, w, V, centred = nh
-            n = V[:, :, 0]
-            flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
-            n = n[flat]
-            ps.append(planes[ok][flat])
-            qs.append(c[flat])
-            Ws.append(n[:, :, None] * n[:, None, :])
-            rs.append(np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n)))
-        if not ps:
+            terms.append(_plane_terms(planes, moved, nh, cfg))
+        if not terms:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), None, np.zeros(0)
+        ps, qs, Ws, rs = zip(*terms, strict=True)
         r = np.concatenate(rs)
         return (
             np.concatenate(ps),

@@ -134,6 +134,60 @@ class RunningNormal:
         return float(np.median(v)) if v else float("nan")
 
 
+def _quality_problem(
+    res: RegistrationResult, information: float, normal: RunningNormal, cfg: PlausibilityConfig
+) -> str | None:
+    """Why the registration's own quality (convergence, fitness m, inlier share, support,
+    information) falls short of the running normal, or None."""
+    have_normal = len(normal) >= max(cfg.warmup, 1)
+    rmse = normal.median("rmse")
+    if not res.converged and (not have_normal or res.rmse > cfg.unconverged_fitness_ratio * rmse):
+        return (
+            f"registration {res.stop_reason} after {res.iterations} iterations,"
+            f" fitness {res.rmse:.3f} m"
+        )
+    if not have_normal:
+        return None
+    if res.rmse > cfg.max_fitness_ratio * rmse:
+        return f"fitness {res.rmse:.3f} m > {cfg.max_fitness_ratio:g} x median {rmse:.3f} m"
+    share = normal.median("inlier_ratio")
+    if res.inlier_ratio < cfg.min_inlier_ratio * share:
+        return (
+            f"inlier share {res.inlier_ratio:.2f} < {cfg.min_inlier_ratio:g} x median {share:.2f}"
+        )
+    count = normal.median("num_inliers")
+    if res.num_inliers < cfg.min_support_ratio * count:
+        return f"{res.num_inliers} correspondences < {cfg.min_support_ratio:g} x median {count:.0f}"
+    info = normal.median("information")
+    if information < cfg.min_information_ratio * info:
+        return f"information {information:.2g} < {cfg.min_information_ratio:g} x median {info:.2g}"
+    return None
+
+
+def _motion_problem(
+    T_trusted_current: np.ndarray,
+    T_pred_current: np.ndarray,
+    elapsed: float,
+    cfg: PlausibilityConfig,
+) -> str | None:
+    """Why the motion over ``elapsed`` (s) is not physical: speed (m/s), turn rate (deg/s), or
+    a departure from the constant-velocity prediction beyond what the bounded (angular)
+    acceleration allows; None when it is."""
+    t, r = motion_magnitude(T_trusted_current)
+    if t > cfg.max_speed * elapsed:
+        return f"speed {t / elapsed:.1f} m/s > {cfg.max_speed:g} m/s"
+    if r > cfg.max_turn_rate_deg * elapsed:
+        return f"turn rate {r / elapsed:.0f} deg/s > {cfg.max_turn_rate_deg:g} deg/s"
+    t, r = motion_magnitude(T_pred_current)
+    lim_t = cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
+    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
+    if t > lim_t:
+        return f"{t:.2f} m from the constant-velocity prediction (> {lim_t:.2f} m)"
+    if r > lim_r:
+        return f"{r:.1f} deg from the constant-velocity prediction (> {lim_r:.1f} deg)"
+    return None
+
+
 def implausibility(
     res: RegistrationResult,
     information: float,
@@ -153,45 +207,7 @@ def implausibility(
     """
     if not cfg.enabled:
         return None
-    have_normal = len(normal) >= max(cfg.warmup, 1)
-    rmse = normal.median("rmse")
-    if not res.converged and (not have_normal or res.rmse > cfg.unconverged_fitness_ratio * rmse):
-        return (
-            f"registration {res.stop_reason} after {res.iterations} iterations,"
-            f" fitness {res.rmse:.3f} m"
-        )
-    if have_normal:
-        if res.rmse > cfg.max_fitness_ratio * rmse:
-            return f"fitness {res.rmse:.3f} m > {cfg.max_fitness_ratio:g} x median {rmse:.3f} m"
-        share = normal.median("inlier_ratio")
-        if res.inlier_ratio < cfg.min_inlier_ratio * share:
-            return (
-                f"inlier share {res.inlier_ratio:.2f} < {cfg.min_inlier_ratio:g} x median"
-                f" {share:.2f}"
-            )
-        count = normal.median("num_inliers")
-        if res.num_inliers < cfg.min_support_ratio * count:
-            return (
-                f"{res.num_inliers} correspondences < {cfg.min_support_ratio:g} x median"
-                f" {count:.0f}"
-            )
-        info = normal.median("information")
-        if information < cfg.min_information_ratio * info:
-            return (
-                f"information {information:.2g} < {cfg.min_information_ratio:g} x median {info:.2g}"
-            )
-    if elapsed is None or not elapsed > 0:
-        return None
-    t, r = motion_magnitude(T_trusted_current)
-    if t > cfg.max_speed * elapsed:
-        return f"speed {t / elapsed:.1f} m/s > {cfg.max_speed:g} m/s"
-    if r > cfg.max_turn_rate_deg * elapsed:
-        return f"turn rate {r / elapsed:.0f} deg/s > {cfg.max_turn_rate_deg:g} deg/s"
-    t, r = motion_magnitude(T_pred_current)
-    lim_t = cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
-    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
-    if t > lim_t:
-        return f"{t:.2f} m from the constant-velocity prediction (> {lim_t:.2f} m)"
-    if r > lim_r:
-        return f"{r:.1f} deg from the constant-velocity prediction (> {lim_r:.1f} deg)"
-    return None
+    problem = _quality_problem(res, information, normal, cfg)
+    if problem is not None or elapsed is None or not elapsed > 0:
+        return problem
+    return _motion_problem(T_trusted_current, T_pred_current, elapsed, cfg)

@@ -159,6 +159,81 @@ def inlier_share(
     return float(np.sum(r < inlier_m) / len(target))
 
 
+def _centroid_step(pose: np.ndarray, delta: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """pose (x, y, theta) after the step delta (dx, dy, dtheta; m, rad) that rotates the
+    moved points about their centroid c (m) and shifts them: eq. (1), P' = R P + t."""
+    ct, st = np.cos(delta[2]), np.sin(delta[2])
+    shift = c + delta[:2] - np.array([ct * c[0] - st * c[1], st * c[0] + ct * c[1]])
+    return compose2d(np.array([shift[0], shift[1], delta[2]]), pose)
+
+
+def _gauss_newton(
+    target: np.ndarray,
+    ref: LineReference,
+    pose: np.ndarray,
+    cfg: PlicpConfig,
+    prior: np.ndarray | None,
+    prior_info: np.ndarray | None,
+) -> tuple[np.ndarray, int, bool, int]:
+    """(pose, iterations, converged, degenerate): steps (3)-(8) of 3.2.1, the Huber-weighted
+    eq. (2) minimised until the step is below cfg.tolerance or max_iterations, or until
+    fewer than min_matches reference points are matched."""
+    converged, it, degenerate = False, 0, 0
+    while it < cfg.max_iterations:
+        it += 1
+        moved = transform2d(pose, target)
+        idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
+        if len(np.unique(idx)) < cfg.min_matches:
+            break
+        # perturbation of the moved points about their centroid c (well conditioned far
+        # from the origin): m' = R(d_theta) (m - c) + c + d_t
+        c = moved[idx].mean(axis=0)
+        J = _jacobian(n, moved[idx] - c)
+        w = _huber_weights(r, cfg.robust_floor)
+        delta, weak = _constrained_step(
+            J,
+            w,
+            r,
+            moved[idx] - c,
+            cfg.degeneracy_ratio,
+            None if prior is None else _prior_terms(pose, c, prior, prior_info, cfg.point_sigma),
+        )
+        degenerate = max(degenerate, weak)
+        pose = _centroid_step(pose, delta, c)
+        if np.all(np.abs(delta) < cfg.tolerance):
+            converged = True
+            break
+    return pose, it, converged, degenerate
+
+
+def _final_result(
+    target: np.ndarray,
+    ref: LineReference,
+    pose: np.ndarray,
+    it: int,
+    converged: bool,
+    degenerate: int,
+    cfg: PlicpConfig,
+) -> PlicpResult:
+    """The result at the solved pose: Huber-weighted RMSE (m) of the matches and their
+    information (1/m^2, 1/rad^2) in the pose's tangent, sigma = max(rmse, 1 cm)."""
+    moved = transform2d(pose, target)
+    idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
+    if len(idx) == 0:
+        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)), degenerate)
+    matches = len(np.unique(idx))
+    if matches == 0:
+        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)))
+    w = _huber_weights(r, cfg.robust_floor)
+    rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
+    sigma2 = max(rmse, 0.01) ** 2
+    J = _jacobian(n, moved[idx])  # about the world origin, then into the pose's tangent
+    info = _world_to_body_info((J * w[:, None]).T @ J / sigma2, pose)
+    pose[2] = float(wrap(pose[2]))
+    ok = converged and matches >= cfg.min_matches
+    return PlicpResult(pose, rmse, matches, it, ok, info, degenerate)
+
+
 def plicp(
     target: np.ndarray,
     ref: LineReference,
@@ -182,50 +257,10 @@ def plicp(
         if prior_info is None or np.shape(prior_info) != (3, 3):
             raise ConfigError("plicp: a prior needs its 3x3 information prior_info")
         prior_info = np.asarray(prior_info, dtype=np.float64)
-    converged, it, degenerate = False, 0, 0
     if len(ref) == 0 or len(target) == 0:
         return PlicpResult(pose, np.inf, 0, 0, False, np.zeros((3, 3)))
-    while it < cfg.max_iterations:
-        it += 1
-        moved = transform2d(pose, target)
-        idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
-        if len(np.unique(idx)) < cfg.min_matches:
-            break
-        # perturbation of the moved points about their centroid c (well conditioned far
-        # from the origin): m' = R(d_theta) (m - c) + c + d_t
-        c = moved[idx].mean(axis=0)
-        J = _jacobian(n, moved[idx] - c)
-        w = _huber_weights(r, cfg.robust_floor)
-        delta, weak = _constrained_step(
-            J,
-            w,
-            r,
-            moved[idx] - c,
-            cfg.degeneracy_ratio,
-            None if prior is None else _prior_terms(pose, c, prior, prior_info, cfg.point_sigma),
-        )
-        degenerate = max(degenerate, weak)
-        ct, st = np.cos(delta[2]), np.sin(delta[2])
-        shift = c + delta[:2] - np.array([ct * c[0] - st * c[1], st * c[0] + ct * c[1]])
-        pose = compose2d(np.array([shift[0], shift[1], delta[2]]), pose)
-        if np.all(np.abs(delta) < cfg.tolerance):
-            converged = True
-            break
-    moved = transform2d(pose, target)
-    idx, n, r, _ = _residuals(moved, ref, cfg.max_distance, cfg.point_matches)
-    if len(idx) == 0:
-        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)), degenerate)
-    matches = len(np.unique(idx))
-    if matches == 0:
-        return PlicpResult(pose, np.inf, 0, it, False, np.zeros((3, 3)))
-    w = _huber_weights(r, cfg.robust_floor)
-    rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
-    sigma2 = max(rmse, 0.01) ** 2
-    J = _jacobian(n, moved[idx])  # about the world origin, then into the pose's tangent
-    info = _world_to_body_info((J * w[:, None]).T @ J / sigma2, pose)
-    pose[2] = float(wrap(pose[2]))
-    ok = converged and matches >= cfg.min_matches
-    return PlicpResult(pose, rmse, matches, it, ok, info, degenerate)
+    pose, it, converged, degenerate = _gauss_newton(target, ref, pose, cfg, prior, prior_info)
+    return _final_result(target, ref, pose, it, converged, degenerate, cfg)
 
 
 def _prior_terms(

@@ -343,6 +343,65 @@ def solve_restricted(
     return T, n_used
 
 
+def _two_steps(
+    T: np.ndarray,
+    ground: np.ndarray,
+    g_res: np.ndarray,
+    edges: np.ndarray,
+    edge_map: Target | None,
+    plane_map: Target | None,
+    ground_plane: tuple[np.ndarray, float] | None,
+    cfg: TwoStepConfig,
+) -> np.ndarray:
+    """T after LeGO-LOAM's two restricted steps: [roll, pitch, z] from the ground points on
+    the plane map (+ E_ground when ``ground_plane`` is given), then [yaw, x, y] from the
+    edges on the edge map (section III-D)."""
+
+    def step1(T_: np.ndarray) -> Terms:
+        parts = [plane_terms(T_, ground, plane_map, cfg)]
+        if ground_plane is not None:
+            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
+        return Terms.join(parts)
+
+    T, _ = solve_restricted(T, step1, GROUND_DOF, cfg.step_iterations)
+    T, _ = solve_restricted(
+        T, lambda T_: edge_terms(T_, edges, edge_map, cfg), EDGE_DOF, cfg.step_iterations
+    )
+    return T
+
+
+def _refine(
+    T: np.ndarray,
+    edges: np.ndarray,
+    surf: np.ndarray,
+    g_res: np.ndarray,
+    edge_map: Target | None,
+    plane_map: Target | None,
+    ground_plane: tuple[np.ndarray, float] | None,
+    n_src: int,
+    cfg: TwoStepConfig,
+) -> RegistrationResult:
+    """The 6-DoF refinement from T: E = E_edge + E_plane (+ E_ground when ``ground_plane`` is
+    given), the energy of 3.3, by ``solve_weighted``."""
+
+    def associate(T_: np.ndarray):
+        parts = [edge_terms(T_, edges, edge_map, cfg), plane_terms(T_, surf, plane_map, cfg)]
+        if ground_plane is not None:
+            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
+        tm = Terms.join(parts)
+        return tm.p, tm.c, tm.W, tm.w, tm.sqd
+
+    return solve_weighted(
+        T,
+        associate,
+        n_src,
+        max_iterations=cfg.max_iterations,
+        transformation_epsilon=cfg.transformation_epsilon,
+        fitness_epsilon=cfg.fitness_epsilon,
+        residual_dims=1,
+    )
+
+
 def two_step_align(
     ground_xyz: np.ndarray,
     edge_xyz: np.ndarray,
@@ -373,43 +432,17 @@ def two_step_align(
     if n_src < 6:
         raise RegistrationError(f"two-step matching needs at least 6 feature points, got {n_src}")
     T = np.eye(4) if init_T is None else np.asarray(init_T, dtype=np.float64).copy()
-    use_ground = ground_plane is not None and cfg.ground_weight > 0
+    gp = ground_plane if cfg.ground_weight > 0 else None
     g_res = (
         ground
         if ground_residual_xyz is None
         else _check_points(ground_residual_xyz, "E_ground points")
     )
-
-    def step1(T_: np.ndarray) -> Terms:
-        parts = [plane_terms(T_, ground, plane_map, cfg)]
-        if use_ground:
-            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
-        return Terms.join(parts)
-
     T_start = T.copy()
     if cfg.two_step and cfg.step_iterations > 0:
-        T, _ = solve_restricted(T, step1, GROUND_DOF, cfg.step_iterations)
-        T, _ = solve_restricted(
-            T, lambda T_: edge_terms(T_, edges, edge_map, cfg), EDGE_DOF, cfg.step_iterations
-        )
+        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg)
     surf = np.concatenate([ground, planes])
-
-    def associate(T_: np.ndarray):
-        parts = [edge_terms(T_, edges, edge_map, cfg), plane_terms(T_, surf, plane_map, cfg)]
-        if use_ground:
-            parts.append(ground_terms(T_, g_res, ground_plane, cfg))
-        tm = Terms.join(parts)
-        return tm.p, tm.c, tm.W, tm.w, tm.sqd
-
-    res = solve_weighted(
-        T,
-        associate,
-        n_src,
-        max_iterations=cfg.max_iterations,
-        transformation_epsilon=cfg.transformation_epsilon,
-        fitness_epsilon=cfg.fitness_epsilon,
-        residual_dims=1,
-    )
+    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg)
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
     return res

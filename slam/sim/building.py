@@ -149,6 +149,104 @@ def _in_plain(k: int | None, u: float) -> bool:
     return k is not None and any(j == k and x0 <= u <= x1 for j, x0, x1 in PLAIN)
 
 
+def _room_cuts(a: float, c: float, rooms: bool, rng: np.random.Generator) -> list[float]:
+    """Positions u (m) of the partitions along a wall stretch (a, c): rooms 6-10 m wide, or
+    12-24 m between service doors on walls without rooms; no remainder under 4 m."""
+    cuts = [a]
+    while cuts[-1] < c:
+        w = rng.uniform(6.0, 10.0) if rooms else rng.uniform(12.0, 24.0)
+        cuts.append(min(cuts[-1] + w, c))
+        if c - cuts[-1] < 4.0:
+            cuts[-1] = c
+    return cuts
+
+
+def _doors(
+    cuts: list[float], rooms: bool, lane: int | None, rng: np.random.Generator
+) -> list[tuple[float, float, str]]:
+    """(u0, u1, "open"|"closed") of one door (1.2 or 1.8 m) per room of at least 3.2 m
+    outside the plain stretches; open (45 %) only into rooms."""
+    doors: list[tuple[float, float, str]] = []
+    for r0, r1 in zip(cuts[:-1], cuts[1:], strict=True):
+        mid = 0.5 * (r0 + r1)
+        if _in_plain(lane, mid) or r1 - r0 < 3.2:
+            continue
+        dw = 1.8 if rng.random() < 0.25 else 1.2
+        u = rng.uniform(r0 + 0.6, r1 - 0.6 - dw)
+        is_open = rooms and rng.random() < 0.45
+        doors.append((u, u + dw, "open" if is_open else "closed"))
+    return doors
+
+
+def _wall(
+    b: g.MeshBuilder,
+    rng: np.random.Generator,
+    cor: Corridor,
+    face: float,
+    side: float,
+    stretch: tuple[float, float],
+    doors: list[tuple[float, float, str]],
+    wall_refl: float,
+    rooms: bool,
+    lane: int | None,
+) -> None:
+    """The corridor wall of a stretch between its doors, lintels over and panels in the
+    closed doors, sometimes (12 % of room walls) a glazed office front; then pilasters on
+    the structural grid, clear of doors and of the stretch ends (m)."""
+    a, c = stretch
+    u = a
+    glass_front = rooms and rng.random() < 0.12
+    for d0, d1, kind in doors:
+        b.add(cor.box(u, d0, face, face + side * WALL, 0.0, STOREY, wall_refl))
+        b.add(cor.box(d0, d1, face, face + side * WALL, 2.2, STOREY, wall_refl))
+        if kind == "closed":
+            refl = g.METAL if rng.random() < 0.4 else g.WOOD
+            panel = face + side * 0.08
+            b.add(cor.box(d0, d1, panel, panel + side * 0.05, 0.0, 2.2, refl))
+        u = d1
+    b.add(cor.box(u, c, face, face + side * WALL, 0.0, STOREY, wall_refl))
+    if glass_front and not _in_plain(lane, 0.5 * (a + c)):  # a glazed office front
+        g0 = rng.uniform(a, max(a, c - 6.0))
+        b.add(cor.box(g0, min(g0 + 5.0, c), face - side * 0.02, face, 0.9, 2.6, g.GLASS))
+    for u in np.arange(np.ceil((a + 0.6) / GRID) * GRID, c - 0.6, GRID):
+        if _in_plain(lane, u) or any(d0 - 0.6 < u < d1 + 0.6 for d0, d1, _ in doors):
+            continue
+        b.add(cor.box(u - 0.3, u + 0.3, face, face - side * 0.3, 0.0, STOREY, g.CONCRETE))
+
+
+def _rooms(
+    b: g.MeshBuilder,
+    rng: np.random.Generator,
+    cor: Corridor,
+    face: float,
+    side: float,
+    stretch: tuple[float, float],
+    cuts: list[float],
+    depth: float,
+    back_wall: bool,
+) -> None:
+    """The rooms behind a wall stretch (``depth`` m): back wall, partitions, and in half of
+    them a stack of boards, insulation or a scaffold."""
+    back = face + side * (WALL + depth)
+    if back_wall:
+        b.add(cor.box(*stretch, back, back + side * WALL, 0.0, STOREY, g.CONCRETE))
+    for r in cuts:  # partitions between rooms and at the stretch ends
+        b.add(cor.box(r - WALL / 2, r + WALL / 2, face, back, 0.0, STOREY, g.CONCRETE))
+    for r0, r1 in zip(cuts[:-1], cuts[1:], strict=True):  # what lies in the rooms
+        if rng.random() < 0.5:
+            continue
+        kind = rng.choice(["stack", "insulation", "scaffold"])
+        w = min(rng.uniform(1.0, 3.0), r1 - r0 - 1.0)
+        u = rng.uniform(r0 + 0.5, r1 - 0.5 - w)
+        v = face + side * rng.uniform(1.0, depth - 2.0)
+        if kind == "stack":
+            b.add(cor.box(u, u + w, v, v + side * 1.0, 0.0, rng.uniform(0.6, 1.6), g.WOOD))
+        elif kind == "insulation":
+            b.add(cor.box(u, u + w, v, v + side * 1.2, 0.0, rng.uniform(0.8, 2.0), INSULATION))
+        else:
+            _scaffold(b, cor.world(u, v), rng)
+
+
 def _side(
     b: g.MeshBuilder,
     rng: np.random.Generator,
@@ -168,62 +266,11 @@ def _side(
     face = side * WIDTH / 2  # v of the wall face
     wall_refl = g.PAINT if rng.random() < 0.6 else g.CONCRETE
     for a, c in stretches:
-        # Rooms (or service doors on walls without rooms) along the stretch.
-        cuts = [a]
-        while cuts[-1] < c:
-            w = rng.uniform(6.0, 10.0) if rooms else rng.uniform(12.0, 24.0)
-            cuts.append(min(cuts[-1] + w, c))
-            if c - cuts[-1] < 4.0:
-                cuts[-1] = c
-        doors: list[tuple[float, float, str]] = []  # (u0, u1, "open"|"closed")
-        for r0, r1 in zip(cuts[:-1], cuts[1:], strict=True):
-            mid = 0.5 * (r0 + r1)
-            if _in_plain(lane, mid) or r1 - r0 < 3.2:
-                continue
-            dw = 1.8 if rng.random() < 0.25 else 1.2
-            u = rng.uniform(r0 + 0.6, r1 - 0.6 - dw)
-            is_open = rooms and rng.random() < 0.45
-            doors.append((u, u + dw, "open" if is_open else "closed"))
-        # The corridor wall between the doors; lintels over and panels in the doors.
-        u = a
-        glass_front = rooms and rng.random() < 0.12
-        for d0, d1, kind in doors:
-            b.add(cor.box(u, d0, face, face + side * WALL, 0.0, STOREY, wall_refl))
-            b.add(cor.box(d0, d1, face, face + side * WALL, 2.2, STOREY, wall_refl))
-            if kind == "closed":
-                refl = g.METAL if rng.random() < 0.4 else g.WOOD
-                panel = face + side * 0.08
-                b.add(cor.box(d0, d1, panel, panel + side * 0.05, 0.0, 2.2, refl))
-            u = d1
-        b.add(cor.box(u, c, face, face + side * WALL, 0.0, STOREY, wall_refl))
-        if glass_front and not _in_plain(lane, 0.5 * (a + c)):  # a glazed office front
-            g0 = rng.uniform(a, max(a, c - 6.0))
-            b.add(cor.box(g0, min(g0 + 5.0, c), face - side * 0.02, face, 0.9, 2.6, g.GLASS))
-        # Pilasters on the grid, clear of doors and of the stretch ends.
-        for u in np.arange(np.ceil((a + 0.6) / GRID) * GRID, c - 0.6, GRID):
-            if _in_plain(lane, u) or any(d0 - 0.6 < u < d1 + 0.6 for d0, d1, _ in doors):
-                continue
-            b.add(cor.box(u - 0.3, u + 0.3, face, face - side * 0.3, 0.0, STOREY, g.CONCRETE))
-        if not rooms:
-            continue
-        back = face + side * (WALL + depth)
-        if back_wall:
-            b.add(cor.box(a, c, back, back + side * WALL, 0.0, STOREY, g.CONCRETE))
-        for r in cuts:  # partitions between rooms and at the stretch ends
-            b.add(cor.box(r - WALL / 2, r + WALL / 2, face, back, 0.0, STOREY, g.CONCRETE))
-        for r0, r1 in zip(cuts[:-1], cuts[1:], strict=True):  # what lies in the rooms
-            if rng.random() < 0.5:
-                continue
-            kind = rng.choice(["stack", "insulation", "scaffold"])
-            w = min(rng.uniform(1.0, 3.0), r1 - r0 - 1.0)
-            u = rng.uniform(r0 + 0.5, r1 - 0.5 - w)
-            v = face + side * rng.uniform(1.0, depth - 2.0)
-            if kind == "stack":
-                b.add(cor.box(u, u + w, v, v + side * 1.0, 0.0, rng.uniform(0.6, 1.6), g.WOOD))
-            elif kind == "insulation":
-                b.add(cor.box(u, u + w, v, v + side * 1.2, 0.0, rng.uniform(0.8, 2.0), INSULATION))
-            else:
-                _scaffold(b, cor.world(u, v), rng)
+        cuts = _room_cuts(a, c, rooms, rng)
+        doors = _doors(cuts, rooms, lane, rng)
+        _wall(b, rng, cor, face, side, (a, c), doors, wall_refl, rooms, lane)
+        if rooms:
+            _rooms(b, rng, cor, face, side, (a, c), cuts, depth, back_wall)
 
 
 def _scaffold(b: g.MeshBuilder, xy, rng: np.random.Generator) -> None:
@@ -272,10 +319,9 @@ def _hall(b: g.MeshBuilder, rng: np.random.Generator, name: str) -> None:
             b.add(g.box_minmax((x, y - 0.5, 0.0), (x + w, y + 0.5, rng.uniform(0.6, 1.8)), refl))
 
 
-def _floor(rng: np.random.Generator) -> g.MeshBuilder:
-    """The static floor: slab, ceiling (open over the atrium), exterior walls, corridors
-    with their rooms, halls, ducts."""
-    b = g.MeshBuilder()
+def _shell(b: g.MeshBuilder) -> None:
+    """Slab, ceiling (open over the atrium, which has its own metal roof) and the exterior
+    walls of the floor (m)."""
     X, Y = FLOOR_X, FLOOR_Y
     b.add(g.box_minmax((0.0, 0.0, -0.2), (X, Y, 0.0), g.CONCRETE))
     ax0, ax1, ay0, ay1 = HALLS["atrium"]
@@ -295,22 +341,27 @@ def _floor(rng: np.random.Generator) -> g.MeshBuilder:
     ):
         b.add(g.box_minmax((*lo, 0.0), (*hi, STOREY), g.CONCRETE))
 
-    def hall_holes(cor: Corridor, side: float) -> list[tuple[float, float]]:
-        holes = []
-        for x0, x1, y0, y1 in HALLS.values():
-            lo, hi = (y0, y1) if cor.axis == "x" else (x0, x1)
-            u0, u1 = (x0, x1) if cor.axis == "x" else (y0, y1)
-            face = cor.c + side * WIDTH / 2
-            if lo < face < hi:
-                holes.append((u0, u1))
-        return holes
 
-    # East-west corridors: rooms on both sides (up to the exterior on the outer sides of
-    # the first and last), openings at the halls and at the middle spine.
+def _hall_holes(cor: Corridor, side: float) -> list[tuple[float, float]]:
+    """(u0, u1) spans (m) where a hall opens the corridor's wall on ``side`` (0: its axis)."""
+    holes = []
+    for x0, x1, y0, y1 in HALLS.values():
+        lo, hi = (y0, y1) if cor.axis == "x" else (x0, x1)
+        u0, u1 = (x0, x1) if cor.axis == "x" else (y0, y1)
+        face = cor.c + side * WIDTH / 2
+        if lo < face < hi:
+            holes.append((u0, u1))
+    return holes
+
+
+def _lanes(b: g.MeshBuilder, rng: np.random.Generator) -> None:
+    """East-west corridors: rooms on both sides (up to the exterior on the outer sides of
+    the first and last), openings at the halls and at the middle spine, and a duct under
+    the ceiling along one side, interrupted by the open spaces."""
     for k in range(len(LANES)):
         cor = _lane(k)
         for side in (-1.0, 1.0):
-            holes = hall_holes(cor, side)
+            holes = _hall_holes(cor, side)
             if (k, side) in ((0, 1.0), (1, -1.0)):
                 holes.append((SPINE_M - WIDTH / 2, SPINE_M + WIDTH / 2))
             outer = (k == 0 and side < 0) or (k == len(LANES) - 1 and side > 0)
@@ -320,11 +371,18 @@ def _floor(rng: np.random.Generator) -> g.MeshBuilder:
                 depth = min(cor.c, FLOOR_Y - cor.c) - WIDTH / 2 - WALL - EXT
             _side(b, rng, cor, side, _subtract(u0, u1, holes), rooms=True,
                   depth=depth, back_wall=not outer, lane=k)  # fmt: skip
-        # A duct under the ceiling along one side, interrupted by the open spaces.
         side = rng.choice([-1.0, 1.0])
-        for a, c in _subtract(cor.u0, cor.u1, hall_holes(cor, 0.0)):
+        for a, c in _subtract(cor.u0, cor.u1, _hall_holes(cor, 0.0)):
             v = side * rng.uniform(0.4, 1.0)
             b.add(cor.box(a, c, v - 0.3, v + 0.3, 5.2, 5.6, g.METAL))
+
+
+def _floor(rng: np.random.Generator) -> g.MeshBuilder:
+    """The static floor: slab, ceiling (open over the atrium), exterior walls, corridors
+    with their rooms, halls, ducts."""
+    b = g.MeshBuilder()
+    _shell(b)
+    _lanes(b, rng)
     # North-south spines: service doors and pilasters, no rooms; the outer walls of the
     # end spines are the exterior walls.
     for cor in _spines():

@@ -229,6 +229,82 @@ class ScanTruth:
     ray_dir: np.ndarray | None = None
 
 
+def _cast_sweep(
+    scene,
+    T: np.ndarray,
+    times: np.ndarray,
+    ray_s: np.ndarray,
+    beams: int,
+    rng: np.random.Generator,
+) -> RayHits:
+    """First hits of every ray of a sweep: ray directions ray_s (C, B, 3, sensor frame) from
+    each column's pose T (C, 4, 4), the scene evaluated at times (C,) (s, scene time)."""
+    dirs_w = np.matmul(ray_s, T[:, :3, :3].transpose(0, 2, 1))
+    origins = np.broadcast_to(T[:, None, :3, 3], dirs_w.shape)
+    times = np.broadcast_to(times[:, None], dirs_w.shape[:2])
+    cast_kw = {"rng": rng} if getattr(scene, "porous_vertices", None) is not None else {}
+    return scene.cast(
+        origins.reshape(-1, 3),
+        dirs_w.reshape(-1, 3),
+        times.reshape(-1),
+        group=beams,
+        **cast_kw,
+    )
+
+
+def _noisy_ranges(r_mix: np.ndarray, model: LidarModel, rng: np.random.Generator) -> np.ndarray:
+    """(n,) measured ranges (m): r_mix plus Gaussian noise of sigma range_sigma (+
+    range_sigma_per_m x range when that grows with range)."""
+    n = len(r_mix)
+    if model.range_sigma_per_m > 0:
+        sigma = model.range_sigma + model.range_sigma_per_m * r_mix
+        return r_mix + rng.standard_normal(n) * sigma
+    if model.range_sigma > 0:
+        return r_mix + rng.normal(0.0, model.range_sigma, n)
+    return r_mix.copy()
+
+
+def _intensities(
+    hits: RayHits,
+    idx: np.ndarray,
+    r_true: np.ndarray,
+    mixed: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """(n,) intensity 0..255 like a Velodyne: reflectivity x incidence with mild range (m)
+    falloff and noise; halved for mixed pixels (the pulse energy is split)."""
+    n = idx.size
+    refl = hits.reflectivity[idx]
+    cosi = np.abs(hits.cos_incidence[idx])
+    intensity = 255.0 * refl * (0.35 + 0.65 * cosi) / (1.0 + (r_true / 60.0) ** 2)
+    intensity = np.clip(intensity + rng.normal(0.0, 1.5, n), 0.0, 255.0)
+    if mixed.any():
+        intensity[mixed] *= 0.5  # the pulse energy is split between two surfaces
+    return intensity
+
+
+def _spurious_returns(
+    r: np.ndarray,
+    intensity: np.ndarray,
+    r_true: np.ndarray,
+    model: LidarModel,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """(n,) flags of spurious returns, whose range (m) and intensity are overwritten in place:
+    a random point along the ray, >= 1 m in front of the true surface, drawn among returns
+    far enough away so that the overall rate matches spurious_fraction."""
+    n = len(r)
+    lo = max(model.min_range, 0.5)
+    eligible = r_true > lo + 1.5
+    p = model.spurious_fraction * n / max(int(eligible.sum()), 1)
+    spurious = eligible & (rng.random(n) < p)
+    k = int(spurious.sum())
+    if k:
+        r[spurious] = lo + rng.random(k) * (r_true[spurious] - 1.0 - lo)
+        intensity[spurious] = rng.random(k) * _SPURIOUS_INTENSITY_MAX
+    return spurious
+
+
 def simulate_scan_truth(
     scene,
     pose_at: Callable[[np.ndarray], np.ndarray],
@@ -250,18 +326,7 @@ def simulate_scan_truth(
     T = np.asarray(pose_at(t0 + col_t), dtype=np.float64).reshape(model.columns, 4, 4)
     dirs_s = model.directions()  # (C, B, 3) nominal: what the driver publishes along
     ray_s = model.true_directions() if model.has_calibration_error else dirs_s
-    dirs_w = np.matmul(ray_s, T[:, :3, :3].transpose(0, 2, 1))
-    origins = np.broadcast_to(T[:, None, :3, 3], dirs_w.shape)
-    times = np.broadcast_to((t0 + col_t - time_offset)[:, None], dirs_w.shape[:2])
-    cast_kw = {"rng": rng} if getattr(scene, "porous_vertices", None) is not None else {}
-    hits = scene.cast(
-        origins.reshape(-1, 3),
-        dirs_w.reshape(-1, 3),
-        times.reshape(-1),
-        group=model.beams,
-        **cast_kw,
-    )
-
+    hits = _cast_sweep(scene, T, t0 + col_t - time_offset, ray_s, model.beams, rng)
     true_r = hits.range
     valid = np.isfinite(true_r) & (true_r >= model.min_range) & (true_r <= model.max_range)
     idx = np.flatnonzero(valid)  # firing order: column-major, ring bottom -> top
@@ -271,36 +336,13 @@ def simulate_scan_truth(
     r_mix = r_true
     if model.mixed_pixel_prob > 0:
         mixed, r_mix = _mixed_pixels(true_r, valid, hits.porous, idx, model, rng)
-    if model.range_sigma_per_m > 0:
-        sigma = model.range_sigma + model.range_sigma_per_m * r_mix
-        r = r_mix + rng.standard_normal(n) * sigma
-    elif model.range_sigma > 0:
-        r = r_mix + rng.normal(0.0, model.range_sigma, n)
-    else:
-        r = r_mix.copy()
-    refl = hits.reflectivity[idx]
-    cosi = np.abs(hits.cos_incidence[idx])
-    # Intensity 0..255 like a Velodyne: reflectivity x incidence with mild range falloff.
-    intensity = 255.0 * refl * (0.35 + 0.65 * cosi) / (1.0 + (r_true / 60.0) ** 2)
-    intensity = np.clip(intensity + rng.normal(0.0, 1.5, n), 0.0, 255.0)
-    if mixed.any():
-        intensity[mixed] *= 0.5  # the pulse energy is split between two surfaces
-
-    # Spurious returns: a random point along the ray, >= 1 m in front of the true surface.
-    # Drawn among returns far enough away so that the overall rate matches the model.
-    lo = max(model.min_range, 0.5)
-    eligible = r_true > lo + 1.5
-    p = model.spurious_fraction * n / max(int(eligible.sum()), 1)
-    spurious = eligible & (rng.random(n) < p)
-    k = int(spurious.sum())
-    if k:
-        r[spurious] = lo + rng.random(k) * (r_true[spurious] - 1.0 - lo)
-        intensity[spurious] = rng.random(k) * _SPURIOUS_INTENSITY_MAX
+    r = _noisy_ranges(r_mix, model, rng)
+    intensity = _intensities(hits, idx, r_true, mixed, rng)
+    spurious = _spurious_returns(r, intensity, r_true, model, rng)
     ring = idx % model.beams
     if model.calib_range_m > 0:
         r = r + model.calibration()[2][ring]  # the beam's range offset
     r = np.clip(r, model.min_range, model.max_range)
-
     xyz = dirs_s.reshape(-1, 3)[idx] * r[:, None]
     column = (idx // model.beams).astype(np.int32)
     porous = hits.porous[idx] if hits.porous is not None else np.zeros(n, dtype=bool)

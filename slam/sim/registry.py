@@ -52,7 +52,7 @@ class SceneEntry:
 SCENES: dict[str, SceneEntry] = {
     "corridor": SceneEntry("slam.sim.scenes:corridor", ("scenes.py",)),
     "plaza": SceneEntry("slam.sim.scenes:plaza", ("scenes.py",)),
-    "park": SceneEntry("slam.sim.scenes:park", ("scenes.py",), realistic=True),
+    "park": SceneEntry("slam.sim.park:park", ("park.py", "scenes.py"), realistic=True),
     "urban": SceneEntry("slam.sim.urban:urban", ("urban.py", "scenes.py"), realistic=True),
     "street": SceneEntry(
         "slam.sim.street:street", ("street.py", "urban.py", "scenes.py"), realistic=True

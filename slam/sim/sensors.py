@@ -26,7 +26,7 @@ numbering. The simulator then writes bags like the real recordings users bring:
 Each spec has an ideal variant (range noise and spurious returns only, like the default
 :class:`LidarModel`) and a realistic one (per-beam calibration errors, range noise
 growing with range, mixed pixels), chosen by the scene (see
-:func:`slam.sim.scenes.scene_sensor`).
+:func:`slam.sim.registry.scene_sensor`).
 """
 
 from __future__ import annotations

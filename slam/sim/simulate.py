@@ -159,6 +159,55 @@ def bag_path(out: Path, scene: str, fmt: str) -> Path:
     return out / (f"{scene}.bag" if fmt == "ros1" else scene)
 
 
+def _reported(
+    scans: Iterator[Scan], frames: int, progress: Callable[[int, int], None] | None
+) -> Iterator[Scan]:
+    """The scans, calling progress(done, frames) after each one is consumed."""
+    for i, scan in enumerate(scans):
+        yield scan
+        if progress is not None:
+            progress(i + 1, frames)
+
+
+def _sim_meta(
+    scene: str,
+    world: Scene,
+    model: LidarModel,
+    spec: SensorSpec,
+    frames: int,
+    total: int,
+    seed: int,
+    fmt: str,
+    pedestrians: bool,
+    bag: Path,
+    sensor: str,
+) -> dict[str, Any]:
+    """The sim.json of a simulated sequence: what was simulated, with which sensor and model,
+    and the scene's loop radii (m), lap length (m) and sensor height (m)."""
+    meta = {
+        "scene": scene,
+        "description": world.description,
+        "frames": frames,
+        "full_frames": total,
+        "seed": seed,
+        "fmt": fmt,
+        "pedestrians": pedestrians,
+        "topic": spec.topic,
+        "frame_id": spec.frame_id,
+        "stamp0": STAMP0,
+        "bag": bag.name,
+        "ground_truth": GT_NAME,
+        "loop_max_radius": world.loop_max_radius,
+        "revisit_radius": world.revisit_radius,
+        "lap_length_m": world.trajectory.loop_length,
+        "sensor_height_m": world.trajectory.height,
+        "model": model_dict(model),
+    }
+    if sensor != DEFAULT_SENSOR:  # older sequences' sim.json stay as they were
+        meta.update(sensor=sensor, layout=spec.layout, sensor_description=spec.description)
+    return meta
+
+
 def simulate(
     scene: str,
     out: Path,
@@ -195,15 +244,10 @@ def simulate(
     out.mkdir(parents=True, exist_ok=True)
     bag = bag_path(out, scene, fmt)
 
-    def scans() -> Iterator[Scan]:
-        for i, scan in enumerate(iter_scans(world, frames, seed=seed, model=model, sensor=sensor)):
-            yield scan
-            if progress is not None:
-                progress(i + 1, frames)
-
+    scans = iter_scans(world, frames, seed=seed, model=model, sensor=sensor)
     write_pointcloud_bag(
         bag,
-        scans(),
+        _reported(scans, frames, progress),
         topic=spec.topic,
         frame_id=spec.frame_id,
         fmt=fmt,
@@ -213,27 +257,7 @@ def simulate(
     stamps = frame_stamps(frames, model)
     gt = out / GT_NAME
     write_tum(gt, stamps, world.pose_at(stamps - STAMP0))
-    meta = {
-        "scene": scene,
-        "description": world.description,
-        "frames": frames,
-        "full_frames": total,
-        "seed": seed,
-        "fmt": fmt,
-        "pedestrians": pedestrians,
-        "topic": spec.topic,
-        "frame_id": spec.frame_id,
-        "stamp0": STAMP0,
-        "bag": bag.name,
-        "ground_truth": GT_NAME,
-        "loop_max_radius": world.loop_max_radius,
-        "revisit_radius": world.revisit_radius,
-        "lap_length_m": world.trajectory.loop_length,
-        "sensor_height_m": world.trajectory.height,
-        "model": model_dict(model),
-    }
-    if sensor != DEFAULT_SENSOR:  # older sequences' sim.json stay as they were
-        meta.update(sensor=sensor, layout=spec.layout, sensor_description=spec.description)
+    meta = _sim_meta(scene, world, model, spec, frames, total, seed, fmt, pedestrians, bag, sensor)
     (out / META_NAME).write_text(json.dumps(meta, indent=2))
     return SimResult(bag, gt, frames, scene, fmt, seed, spec.topic, meta)
 

@@ -24,7 +24,7 @@ from slam.sim import geometry as g
 from slam.sim.registry import scene_sensor
 from slam.sim.scene import Pedestrian, Scene
 from slam.sim.scenes import _facade, _to_world
-from slam.sim.trajectory import route_trajectory
+from slam.sim.trajectory import Trajectory, route_trajectory
 from slam.sim.urban import CAR_SENSOR_HEIGHT, _block_side, _street_furniture
 
 LENGTH = 880.0  # m of the street driven (x from 0)
@@ -80,13 +80,13 @@ def _cross_street(b: g.MeshBuilder, x: float, half_road: float, rng: np.random.G
     b.add(_facade((w, -53.0), (e, -53.0), 14.0))
 
 
-def street(seed: int = 0, *, pedestrians: bool = True) -> Scene:
-    """The straight street drive (see the module docstring); deterministic for a seed."""
-    rng = np.random.default_rng([seed, 2027])
-    b = g.MeshBuilder()
-    b.add(g.ground((-60.0, LENGTH + 60.0), (-70.0, 70.0), 0.0, g.ASPHALT))
-    sections = [(-40.0, AVENUE[0], STREET), (*AVENUE, WIDE), (AVENUE[1], LENGTH + 40.0, STREET)]
-    for x0, x1, dims in sections:
+_SECTIONS = ((-40.0, AVENUE[0], STREET), (*AVENUE, WIDE), (AVENUE[1], LENGTH + 40.0, STREET))
+
+
+def _sections(b: g.MeshBuilder, rng: np.random.Generator) -> None:
+    """Each section (street, wide avenue, street): raised sidewalks, facades on both sides,
+    street furniture along the streets and the avenue's median with its lamp poles."""
+    for x0, x1, dims in _SECTIONS:
         f, curb = dims["facade"], dims["curb"]
         for a, c in _pieces(x0, x1):
             for side in (-1.0, 1.0):  # raised sidewalks from the curb to the facades
@@ -106,6 +106,10 @@ def street(seed: int = 0, *, pedestrians: bool = True) -> Scene:
                 b.add(g.box_minmax((a + 2.0, -1.5, 0.0), (c - 2.0, 1.5, 0.15), g.CONCRETE))
                 for u in np.arange(a + 8.0, c - 4.0, 40.0):
                     b.add(g.cylinder((u, 0.0), 0.1, 9.0, 0.15, g.METAL, 8))
+
+
+def _ends(b: g.MeshBuilder, rng: np.random.Generator) -> None:
+    """The cross streets at the junctions and the buildings across both ends of the street."""
     for x in JUNCTIONS:
         half = (WIDE if AVENUE[0] <= x <= AVENUE[1] else STREET)["facade"]
         _cross_street(b, x, half, rng)
@@ -113,29 +117,37 @@ def street(seed: int = 0, *, pedestrians: bool = True) -> Scene:
     b.add(_facade((-48.0, 12.0), (-48.0, -12.0), 16.0))
     b.add(_facade((LENGTH + 48.0, -12.0), (LENGTH + 48.0, 12.0), 16.0))
 
+
+def _movers(rng: np.random.Generator) -> list[Pedestrian]:
+    """Walkers on both sidewalks of every section, and oncoming traffic (9-13 m/s) on the
+    other half of the road (the avenue's lanes at 3.25 and 6.75 m from its centre line)."""
     peds: list[Pedestrian] = []
-    if pedestrians:
-        for x0, x1, dims in sections:
-            for side in (-1.0, 1.0):
-                y = side * (dims["curb"] + 1.5)
-                peds.append(
-                    Pedestrian(
-                        (x0 + 5.0, y), (x1 - 5.0, y), rng.uniform(1.0, 1.5),
-                        phase=rng.uniform(0.0, 2.0 * (x1 - x0)), z=(0.15, 0.15),
-                    )
-                )  # fmt: skip
-        # oncoming traffic on the other half of the road (the avenue's lanes at 3.25 and
-        # 6.75 m from its centre line)
-        lanes = [(x0, x1, 2.2) for x0, x1, d in sections if d is STREET]
-        lanes += [(*AVENUE, 3.25), (*AVENUE, 6.75)]
-        for x0, x1, lane in lanes:
+    for x0, x1, dims in _SECTIONS:
+        for side in (-1.0, 1.0):
+            y = side * (dims["curb"] + 1.5)
             peds.append(
                 Pedestrian(
-                    (x1, lane), (x0, lane), rng.uniform(9.0, 13.0), size=(4.4, 1.8, 1.5),
-                    phase=rng.uniform(0.0, 2.0 * (x1 - x0)),
+                    (x0 + 5.0, y), (x1 - 5.0, y), rng.uniform(1.0, 1.5),
+                    phase=rng.uniform(0.0, 2.0 * (x1 - x0)), z=(0.15, 0.15),
                 )
             )  # fmt: skip
-    # the path: the right lane (y < 0), moving to the avenue's middle lane and back
+    # oncoming traffic on the other half of the road (the avenue's lanes at 3.25 and
+    # 6.75 m from its centre line)
+    lanes = [(x0, x1, 2.2) for x0, x1, d in _SECTIONS if d is STREET]
+    lanes += [(*AVENUE, 3.25), (*AVENUE, 6.75)]
+    for x0, x1, lane in lanes:
+        peds.append(
+            Pedestrian(
+                (x1, lane), (x0, lane), rng.uniform(9.0, 13.0), size=(4.4, 1.8, 1.5),
+                phase=rng.uniform(0.0, 2.0 * (x1 - x0)),
+            )
+        )  # fmt: skip
+    return peds
+
+
+def _drive(rng: np.random.Generator) -> Trajectory:
+    """The path on the right lane (y < 0), moving to the avenue's middle lane and back, at
+    the sections' speeds with the junction stops."""
     x = np.arange(0.0, LENGTH + 1e-9, 0.05)
     ramp = lambda x0, x1: np.clip((x - x0) / (x1 - x0), 0.0, 1.0)  # noqa: E731
     s_ramp = lambda u: u * u * (3.0 - 2.0 * u)  # noqa: E731
@@ -146,7 +158,18 @@ def street(seed: int = 0, *, pedestrians: bool = True) -> Scene:
     xy = np.column_stack([x, y])
     v_limit = np.where(x < AVENUE[0], SPEED[0], np.where(x < AVENUE[1], SPEED[1], SPEED[2]))
     stops = [(0.0, 1.0)] + [(xj - STOP_BEFORE, dw) for xj, dw in STOPS]
-    traj = route_trajectory(xy, speed_limit=v_limit, stops=stops, height=CAR_SENSOR_HEIGHT, rng=rng)
+    return route_trajectory(xy, speed_limit=v_limit, stops=stops, height=CAR_SENSOR_HEIGHT, rng=rng)
+
+
+def street(seed: int = 0, *, pedestrians: bool = True) -> Scene:
+    """The straight street drive (see the module docstring); deterministic for a seed."""
+    rng = np.random.default_rng([seed, 2027])
+    b = g.MeshBuilder()
+    b.add(g.ground((-60.0, LENGTH + 60.0), (-70.0, 70.0), 0.0, g.ASPHALT))
+    _sections(b, rng)
+    _ends(b, rng)
+    peds = _movers(rng) if pedestrians else []
+    traj = _drive(rng)
     return Scene.from_builder(
         "street",
         b,

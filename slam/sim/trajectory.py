@@ -145,6 +145,57 @@ class Trajectory:
         return T
 
 
+def _wobble(
+    wobble_deg: float, vibration_deg: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(amp rad, freq Hz, phase rad), each (2, H): roll / pitch suspension wobble (2
+    harmonics, 0.15-0.9 Hz) plus, when vibration_deg > 0, 3 harmonics of 2-9 Hz vibration."""
+    amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
+    freq = rng.uniform(0.15, 0.9, size=(2, 2))
+    phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
+    if vibration_deg > 0:
+        amp = np.hstack([amp, np.deg2rad(vibration_deg) * np.tile([0.5, 0.3, 0.2], (2, 1))])
+        freq = np.hstack([freq, rng.uniform(2.0, 9.0, size=(2, 3))])
+        phase = np.hstack([phase, rng.uniform(0, 2 * np.pi, size=(2, 3))])
+    return amp, freq, phase
+
+
+def _closed_lap(
+    xy: np.ndarray, start_offset: float
+) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """(base, heading, winding, lap, ds): the resampled closed curve starting start_offset
+    (m) along it, its unwrapped heading (rad), turns per lap, lap length and step (m)."""
+    base = resample_closed(xy)
+    n = len(base)
+    seg = np.hypot(*np.diff(np.vstack([base, base[:1]]), axis=0).T)
+    lap = float(seg.sum())
+    shift = int(round(start_offset / lap * n)) % n
+    base = np.roll(base, -shift, axis=0)
+    # Periodic tangent and heading of one lap.
+    d = (np.roll(base, -1, axis=0) - np.roll(base, 1, axis=0)) * 0.5
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    winding = float(np.round((heading[-1] - heading[0]) / (2 * np.pi)))
+    return base, heading, winding, lap, lap / n
+
+
+def _periodic_curvature(heading: np.ndarray, ds: float) -> np.ndarray:
+    """(N,) curvature (1/m) of a closed lap, smoothed periodically over ~1 m."""
+    kappa = np.gradient(heading, ds)
+    w = max(int(1.0 / ds), 1)
+    kappa_s = np.convolve(np.concatenate([kappa[-w:], kappa, kappa[:w]]), np.ones(w) / w, "same")
+    return kappa_s[w:-w]
+
+
+def _speed_factor(s: np.ndarray, variation: float, rng: np.random.Generator) -> np.ndarray:
+    """(K,) factor 1 + variation x f(s) of smooth random speed changes along the route: 3
+    sines of wavelengths 12-50 m, f normalised to amplitude <= 1."""
+    wl = rng.uniform(12.0, 50.0, 3)
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    w_ = rng.uniform(0.5, 1.0, 3)
+    f = np.sum(w_[:, None] * np.sin(2 * np.pi * s[None, :] / wl[:, None] + ph[:, None]), 0)
+    return 1.0 + variation * f / w_.sum()
+
+
 def closed_curve_trajectory(
     xy: np.ndarray,
     *,
@@ -174,23 +225,11 @@ def closed_curve_trajectory(
     """
     if loops <= 0 or speed <= 0:
         raise InputError("trajectory needs loops > 0 and speed > 0")
-    base = resample_closed(xy)
+    base, heading, winding, lap, ds = _closed_lap(xy, start_offset)
     n = len(base)
-    seg = np.hypot(*np.diff(np.vstack([base, base[:1]]), axis=0).T)
-    lap = float(seg.sum())
-    shift = int(round(start_offset / lap * n)) % n
-    base = np.roll(base, -shift, axis=0)
-    # Periodic tangent and heading of one lap.
-    d = (np.roll(base, -1, axis=0) - np.roll(base, 1, axis=0)) * 0.5
-    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    winding = float(np.round((heading[-1] - heading[0]) / (2 * np.pi)))
-    ds = lap / n
     s_lap = np.arange(n) * ds
     # Curvature, smoothed over ~1 m, for the speed profile.
-    kappa = np.gradient(heading, ds)
-    w = max(int(1.0 / ds), 1)
-    kappa_s = np.convolve(np.concatenate([kappa[-w:], kappa, kappa[:w]]), np.ones(w) / w, "same")
-    kappa_s = kappa_s[w:-w]
+    kappa_s = _periodic_curvature(heading, ds)
 
     total = loops * lap
     s = np.arange(0.0, total + ds, ds)
@@ -205,22 +244,12 @@ def closed_curve_trajectory(
     kap = np.interp(s_mod, period_s, np.append(kappa_s, kappa_s[0]))
     v = speed / (1.0 + turn_slowdown * np.abs(kap))
     if speed_variation > 0:
-        wl = rng.uniform(12.0, 50.0, 3)
-        ph = rng.uniform(0, 2 * np.pi, 3)
-        w_ = rng.uniform(0.5, 1.0, 3)
-        f = np.sum(w_[:, None] * np.sin(2 * np.pi * s[None, :] / wl[:, None] + ph[:, None]), 0)
-        v = v * (1.0 + speed_variation * f / w_.sum())
+        v = v * _speed_factor(s, speed_variation, rng)
     u = np.clip(s / ramp_distance, 0.0, 1.0)
     v = v * (0.15 + 0.85 * u * u * (3 - 2 * u))
     t_tab = np.concatenate([[0.0], np.cumsum(0.5 * (1 / v[1:] + 1 / v[:-1]) * np.diff(s))])
 
-    amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
-    freq = rng.uniform(0.15, 0.9, size=(2, 2))
-    phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
-    if vibration_deg > 0:
-        amp = np.hstack([amp, np.deg2rad(vibration_deg) * np.tile([0.5, 0.3, 0.2], (2, 1))])
-        freq = np.hstack([freq, rng.uniform(2.0, 9.0, size=(2, 3))])
-        phase = np.hstack([phase, rng.uniform(0, 2 * np.pi, size=(2, 3))])
+    amp, freq, phase = _wobble(wobble_deg, vibration_deg, rng)
     traj = Trajectory(s, t_tab, xy_tab, yaw_tab, height, amp, freq, phase, lap)
     if terrain is not None:
         traj.z_tab, traj.pitch_tab, traj.roll_tab = _terrain_attitude(terrain, xy_tab, yaw_tab, s)
@@ -337,6 +366,61 @@ def speed_profile(
     return v
 
 
+def _dwell_entries(
+    s: np.ndarray, t: np.ndarray, stops: list[tuple[float, float]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(idx, t_rep): table entries repeated at each stop (distance m, dwell s), the second
+    entry at the same place dwell seconds later and every later time shifted by the dwell."""
+    dwell: dict[int, float] = {}
+    for sd, dw in stops:
+        i = int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1))
+        dwell[i] = dwell.get(i, 0.0) + float(dw)
+    rep = np.ones(len(s), dtype=int)
+    rep[[i for i, dw in dwell.items() if dw > 0]] = 2
+    idx = np.repeat(np.arange(len(s)), rep)
+    second = np.concatenate([[False], idx[1:] == idx[:-1]])
+    add = np.zeros(len(idx))
+    add[second] = [dwell[i] for i in idx[second]]
+    return idx, t[idx] + np.cumsum(add)
+
+
+def _open_path(
+    xy: np.ndarray, speed_limit: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(xy, s, v_lim, heading, kappa): the open path without repeated points, its arc length
+    (m), speed limit (m/s), unwrapped heading (rad) and curvature (1/m, ~1 m smoothing)."""
+    xy = np.asarray(xy, dtype=float)
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    keep = np.concatenate([[True], seg > 1e-9])
+    xy = xy[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    v_lim = np.asarray(speed_limit, dtype=float)[keep]
+    d = np.gradient(xy, s, axis=0)
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    kappa = np.gradient(heading, s)
+    w = max(int(1.0 / max(s[1] - s[0], 1e-6)), 1)
+    return xy, s, v_lim, heading, np.convolve(kappa, np.ones(w) / w, "same")
+
+
+def _route_speed(
+    s: np.ndarray,
+    v_lim: np.ndarray,
+    kappa: np.ndarray,
+    stops: list[tuple[float, float]],
+    lateral_accel: float,
+    accel: float,
+    decel: float,
+) -> np.ndarray:
+    """(K,) speed (m/s) along the route: the limit, sqrt(lateral_accel / |kappa|) in curves,
+    0 at both ends and at the stops, under the acceleration bounds (m/s^2)."""
+    with np.errstate(divide="ignore"):
+        v_lim = np.minimum(v_lim, np.sqrt(lateral_accel / np.abs(kappa)))
+    v_lim[0] = v_lim[-1] = 0.0
+    stop_idx = sorted({int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1)) for sd, _ in stops})
+    v_lim[stop_idx] = 0.0
+    return speed_profile(s, v_lim, accel=accel, decel=decel)
+
+
 def route_trajectory(
     xy: np.ndarray,
     *,
@@ -364,40 +448,13 @@ def route_trajectory(
     lateral acceleration; suspension wobble (``wobble_deg``, 0.15-0.9 Hz) and road
     vibration (``vibration_deg``, 2-9 Hz) fade out below ``sway_speed`` m/s (0 at rest).
     """
-    xy = np.asarray(xy, dtype=float)
-    seg = np.hypot(*np.diff(xy, axis=0).T)
-    keep = np.concatenate([[True], seg > 1e-9])
-    xy = xy[keep]
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
-    v_lim = np.asarray(speed_limit, dtype=float)[keep]
-    d = np.gradient(xy, s, axis=0)
-    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-    kappa = np.gradient(heading, s)
-    w = max(int(1.0 / max(s[1] - s[0], 1e-6)), 1)
-    kappa_s = np.convolve(kappa, np.ones(w) / w, "same")  # ~1 m smoothing
-    with np.errstate(divide="ignore"):
-        v_lim = np.minimum(v_lim, np.sqrt(lateral_accel / np.abs(kappa_s)))
-    v_lim[0] = v_lim[-1] = 0.0
-    stop_idx = sorted({int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1)) for sd, _ in stops})
-    v_lim[stop_idx] = 0.0
-    v = speed_profile(s, v_lim, accel=accel, decel=decel)
+    xy, s, v_lim, heading, kappa_s = _open_path(xy, speed_limit)
+    v = _route_speed(s, v_lim, kappa_s, stops, lateral_accel, accel, decel)
     dt = 2.0 * np.diff(s) / np.maximum(v[1:] + v[:-1], 1e-9)
     t = np.concatenate([[0.0], np.cumsum(dt)])
     a_long = np.gradient(0.5 * v**2, s)
     a_lat = v**2 * kappa_s
-    # Stops: a second table entry at the same place, dwell seconds later (and every
-    # later entry shifted by the dwell).
-    dwell: dict[int, float] = {}
-    for sd, dw in stops:
-        i = int(np.clip(np.searchsorted(s, sd), 0, len(s) - 1))
-        dwell[i] = dwell.get(i, 0.0) + float(dw)
-    rep = np.ones(len(s), dtype=int)
-    rep[[i for i, dw in dwell.items() if dw > 0]] = 2
-    idx = np.repeat(np.arange(len(s)), rep)
-    second = np.concatenate([[False], idx[1:] == idx[:-1]])
-    add = np.zeros(len(idx))
-    add[second] = [dwell[i] for i in idx[second]]
-    t_rep = t[idx] + np.cumsum(add)
+    idx, t_rep = _dwell_entries(s, t, stops)
     s_rep, v_rep = s[idx], v[idx]
     a_long_r, a_lat_r = a_long[idx], a_lat[idx]
     at_rest = v_rep == 0
@@ -408,13 +465,7 @@ def route_trajectory(
             np.deg2rad(pitch_per_accel_deg) * a_long_r * -1.0,  # braking: nose down
         ]
     )
-    amp = np.deg2rad(wobble_deg) * np.array([[0.6, 0.4], [0.6, 0.4]])
-    freq = rng.uniform(0.15, 0.9, size=(2, 2))
-    phase = rng.uniform(0, 2 * np.pi, size=(2, 2))
-    if vibration_deg > 0:
-        amp = np.hstack([amp, np.deg2rad(vibration_deg) * np.tile([0.5, 0.3, 0.2], (2, 1))])
-        freq = np.hstack([freq, rng.uniform(2.0, 9.0, size=(2, 3))])
-        phase = np.hstack([phase, rng.uniform(0, 2 * np.pi, size=(2, 3))])
+    amp, freq, phase = _wobble(wobble_deg, vibration_deg, rng)
     return Trajectory(
         s_rep,
         t_rep,
