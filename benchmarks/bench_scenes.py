@@ -78,12 +78,8 @@ def _run(job: dict) -> dict:
 
 
 def _small_gicp(job: dict) -> dict:
-    """small_gicp's scan-to-map odometry (benchmarks/bench_frontends.py) on the same scans."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_frontends import small_gicp_odometry
-
+    """small_gicp's scan-to-map odometry (``slam.bench.peers``) on the same scans."""
+    from slam.bench.peers import small_gicp_odometry
     from slam.eval.metrics import EvalOptions, evaluate_arrays
     from slam.io.source import open_source
     from slam.io.trajectory import read_tum

@@ -10,7 +10,7 @@ the recipe given. Front-end stages are the front end's own timings (``*_ms`` ext
 per frame); factor plugins and the back end are the pipeline's stage clocks, given per
 frame and per keyframe; the loop plugin's own detect/verify clocks when it reports them.
 ``frames/s`` is the whole pipeline; ``x small_gicp`` divides it by small_gicp's VGICP
-scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans, timed
+scan-to-map odometry (``slam.bench.peers.small_gicp_odometry``) on the same scans, timed
 right after it on the same machine state. ``... CPU (first100/last100)``: CPU ms of each
 stage per frame over the first and last 100 frames (metrics.json stage_cpu_ms_*), which,
 unlike wall time, a loaded machine does not inflate. --cpu adds ``cpu <stage>`` rows: CPU ms
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import sys
 import tarfile
 import tempfile
 import time
@@ -33,17 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from bench_frontends import small_gicp_odometry  # noqa: E402
-
-from slam.config import load_config  # noqa: E402
-from slam.io.folders import cloud_files, read_cloud  # noqa: E402
-from slam.io.source import open_source  # noqa: E402
-from slam.outputs import metrics  # noqa: E402
-from slam.pipeline import Pipeline  # noqa: E402
-from slam.sim.cache import ensure_sequence  # noqa: E402
-from slam.types import Scan  # noqa: E402
+from slam.bench.peers import small_gicp_odometry
+from slam.config import load_config
+from slam.io.folders import cloud_files, read_cloud
+from slam.io.source import open_source
+from slam.outputs import metrics
+from slam.pipeline import Pipeline
+from slam.sim.cache import ensure_sequence
+from slam.types import Scan
 
 KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_drive"
 DATASETS = ("corridor", "park", "urban", "urban-hdl64", "urban-os128", "kitti-raw")
