@@ -30,8 +30,8 @@ def test_small_gicp_on_the_real_pair_finds_the_reference_motion():
     assert t < 0.03 and r < 0.5  # the reference itself: ~1 cm / 0.3 deg
     track = list(small_gicp_track(scans))
     assert [s for s, _ in track] == [0.0, 0.1]
-    poses = small_gicp_odometry(scans)
-    assert all(np.array_equal(a, b) for (_, a), b in zip(track, poses, strict=True))
+    poses = small_gicp_odometry(scans)  # the same poses (2 threads: not bit-identical)
+    assert all(np.allclose(a, b, atol=1e-6) for (_, a), b in zip(track, poses, strict=True))
     t, r = motion_error(np.linalg.inv(poses[0]) @ poses[1], T_ref)
     assert t < 0.05 and r < 0.5
 
