@@ -23,27 +23,11 @@ import tempfile
 import time
 
 import numpy as np
-import small_gicp
 
+from slam.bench.peers import small_gicp_odometry
 from slam.io.source import open_source
 from slam.plugins import instantiate
 from slam.sim.cache import ensure_sequence
-
-
-def small_gicp_odometry(scans, threads: int = 2) -> list[np.ndarray]:
-    """The reference: downsample 0.25 m, VGICP against a 1 m GaussianVoxelMap, const. velocity."""
-    vmap = small_gicp.GaussianVoxelMap(1.0)
-    vmap.set_lru(horizon=100, clear_cycle=10)
-    T, motion, poses = np.eye(4), np.eye(4), []
-    for k, scan in enumerate(scans):
-        pc, _ = small_gicp.preprocess_points(scan.xyz, 0.25, num_threads=threads)
-        if k:
-            res = small_gicp.align(vmap, pc, T @ motion, num_threads=threads)
-            motion = np.linalg.inv(T) @ res.T_target_source
-            T = res.T_target_source
-        vmap.insert(pc, T)
-        poses.append(T.copy())
-    return poses
 
 
 def final_error(poses, scans, gt_stamps, gt) -> float:

@@ -173,6 +173,64 @@ def bench_real(baseline_rev: str | None) -> None:
         )
 
 
+def synthetic_clouds(rng, n: int) -> list[np.ndarray]:
+    """n keyframe clouds of 5000-10000 points: new boxes, ~10 % revisits of an older place
+    (rotated) after the first 100."""
+    places: list[np.ndarray] = []
+    clouds = []
+    for i in range(n):
+        if i > 100 and rng.random() < 0.1:
+            clouds.append(rotate(places[rng.integers(0, i - 50)], rng.uniform(-np.pi, np.pi), rng))
+        else:
+            clouds.append(box_cloud(rng, int(rng.integers(5000, 10001))))
+        places.append(clouds[-1])
+    return clouds
+
+
+def detection(clouds: list[np.ndarray]) -> tuple[dict, list[float], int]:
+    """Detection only per descriptor (a huge min_keyframe_gap skips verification): the
+    plugin's detect ms per keyframe and the plugin; for scan_context the search is also
+    timed on its own (a second query per keyframe): its ms per keyframe and hits."""
+    det_by = {}
+    sc_search: list[float] = []
+    sc_hits = 0
+    for descriptor in ("scan_context", "scan_context_pp"):
+        cfg = LoopClosurePlugin.Config(
+            descriptor=DescriptorConfig(kind=descriptor),
+            search=SearchConfig(min_keyframe_gap=10**9),
+            consistency=ConsistencyConfig(odometry=OdometryGateParams(ratio=-1.0)),
+        )
+        plugin = LoopClosurePlugin(cfg)
+        kfs: list[Keyframe] = []
+        view = GraphView(kfs, lambda i: np.eye(4))
+        for i, c in enumerate(clouds):
+            kf = Keyframe(i, 0.1 * i, i, np.eye(4), np.eye(4), np.eye(6), c)
+            kfs.append(kf)
+            plugin.on_keyframe(kf, view)
+            if descriptor == "scan_context":
+                d = scan_context(c)
+                t = time.perf_counter()
+                found = plugin.db.detect(d, kf.stamp)
+                sc_search.append(1e3 * (time.perf_counter() - t))
+                sc_hits += found is not None
+        det_by[descriptor] = (np.array(plugin.times.detect_ms), plugin)
+    return det_by, sc_search, sc_hits
+
+
+def verification_cpu(rng) -> dict[str, list[float]]:
+    """CPU ms of verify on 10 rotated box pairs, per coarse stage."""
+    ver_cpu: dict[str, list[float]] = {"vgicp": [], "gicp": []}
+    for _ in range(10):
+        a = box_cloud(rng, 8000)
+        yaw = rng.uniform(-np.pi, np.pi)
+        b = rotate(a, -yaw, rng)
+        for name, samples in ver_cpu.items():
+            c0 = time.thread_time()
+            _coarse(name)(a, b, yaw_matrix(yaw + np.radians(4)))
+            samples.append(1e3 * (time.thread_time() - c0))
+    return ver_cpu
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keyframes", type=int, default=1000)
@@ -184,57 +242,13 @@ def main() -> None:
         return
     rng = np.random.default_rng(0)
     n = args.keyframes
-    places: list[np.ndarray] = []
-    clouds = []
-    for i in range(n):
-        if i > 100 and rng.random() < 0.1:
-            clouds.append(rotate(places[rng.integers(0, i - 50)], rng.uniform(-np.pi, np.pi), rng))
-        else:
-            clouds.append(box_cloud(rng, int(rng.integers(5000, 10001))))
-        places.append(clouds[-1])
-
+    clouds = synthetic_clouds(rng, n)
     t = time.perf_counter()
     for c in clouds[:200]:
         scan_context(c)
     desc_ms = 1e3 * (time.perf_counter() - t) / 200
-
-    # detection only: a huge min_keyframe_gap skips verification; search is timed again
-    # on its own (the second query per keyframe)
-    det_by = {}
-    for descriptor in ("scan_context", "scan_context_pp"):
-        cfg = LoopClosurePlugin.Config(
-            descriptor=DescriptorConfig(kind=descriptor),
-            search=SearchConfig(min_keyframe_gap=10**9),
-            consistency=ConsistencyConfig(odometry=OdometryGateParams(ratio=-1.0)),
-        )
-        plugin = LoopClosurePlugin(cfg)
-        kfs: list[Keyframe] = []
-        view = GraphView(kfs, lambda i: np.eye(4))
-        search_ms = []
-        hits = 0
-        for i, c in enumerate(clouds):
-            kf = Keyframe(i, 0.1 * i, i, np.eye(4), np.eye(4), np.eye(6), c)
-            kfs.append(kf)
-            plugin.on_keyframe(kf, view)
-            if descriptor == "scan_context":
-                d = scan_context(c)
-                t = time.perf_counter()
-                found = plugin.db.detect(d, kf.stamp)
-                search_ms.append(1e3 * (time.perf_counter() - t))
-                hits += found is not None
-        det_by[descriptor] = (np.array(plugin.times.detect_ms), plugin)
-        if descriptor == "scan_context":
-            sc_search, sc_hits = search_ms, hits
-
-    ver_cpu: dict[str, list[float]] = {"vgicp": [], "gicp": []}
-    for _ in range(10):
-        a = box_cloud(rng, 8000)
-        yaw = rng.uniform(-np.pi, np.pi)
-        b = rotate(a, -yaw, rng)
-        for name, samples in ver_cpu.items():
-            c0 = time.thread_time()
-            _coarse(name)(a, b, yaw_matrix(yaw + np.radians(4)))
-            samples.append(1e3 * (time.thread_time() - c0))
+    det_by, sc_search, sc_hits = detection(clouds)
+    ver_cpu = verification_cpu(rng)
 
     print(f"keyframes: {n}, points per cloud: 5000-10000, candidates under threshold: {sc_hits}")
     print(f"descriptor                 {desc_ms:7.2f} ms/keyframe")

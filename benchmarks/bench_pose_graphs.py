@@ -144,7 +144,7 @@ def bench_synthetic(
         )
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--graphs", nargs="+", default=["intel", "parking-garage", "sphere2500"])
     parser.add_argument("--data", type=Path, default=DATA)
@@ -163,31 +163,33 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--cpu", action="store_true", help="time updates in process CPU ms")
     parser.add_argument("--loop-every", type=int, default=10)
-    args = parser.parse_args(argv)
-    if args.synthetic:
-        over = {
-            "relinearize_threshold": args.relinearize_threshold,
-            "relinearize_skip": args.relinearize_skip,
-            "extra_updates_after_loop": args.extra_updates,
-        }
-        configs = [Isam2Config(**{k: v for k, v in over.items() if v is not None})]
-        for text in args.variants:  # threshold:skip:extra[:partial]
-            thr, skip, extra, *partial = text.split(":")
-            configs.append(
-                Isam2Config(
-                    float(thr),
-                    int(skip),
-                    True,
-                    int(extra),
-                    partial_relinearization_check=bool(int(partial[0])) if partial else False,
-                )  # fmt: skip
-            )
-        bench_synthetic(args.synthetic, args.laps, args.loop_every, configs, args.cpu)
-        return 0
-    config = Isam2Config(
-        relinearize_threshold=args.relinearize_threshold or 0.1,
-        relinearize_skip=args.relinearize_skip or 10,
-    )
+    return parser.parse_args(argv)
+
+
+def synthetic_configs(args: argparse.Namespace) -> list[Isam2Config]:
+    """The iSAM2 config of the command line and one per ``--variants`` entry."""
+    over = {
+        "relinearize_threshold": args.relinearize_threshold,
+        "relinearize_skip": args.relinearize_skip,
+        "extra_updates_after_loop": args.extra_updates,
+    }
+    configs = [Isam2Config(**{k: v for k, v in over.items() if v is not None})]
+    for text in args.variants:  # threshold:skip:extra[:partial]
+        thr, skip, extra, *partial = text.split(":")
+        configs.append(
+            Isam2Config(
+                float(thr),
+                int(skip),
+                True,
+                int(extra),
+                partial_relinearization_check=bool(int(partial[0])) if partial else False,
+            )  # fmt: skip
+        )
+    return configs
+
+
+def bench_g2o(graphs: list[str], data: Path, config: Isam2Config) -> None:
+    """Batch LM against iSAM2 (pose by pose) on each g2o benchmark graph: time and error."""
     print(
         f"iSAM2: relinearize_threshold={config.relinearize_threshold} "
         f"relinearize_skip={config.relinearize_skip}; baseline: batch LM"
@@ -199,8 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(header)
     print("-" * len(header))
-    for name in args.graphs:
-        path = args.data / f"{name}.g2o"
+    for name in graphs:
+        path = data / f"{name}.g2o"
         if not path.is_file():
             print(f"{name:<16}missing: {path}")
             continue
@@ -217,6 +219,19 @@ def main(argv: list[str] | None = None) -> int:
         )
     print("time x = iSAM2 seconds / batch seconds; ms/pose = iSAM2 mean latency per pose")
     print("(iSAM2 has an estimate after every pose, batch only once at the end)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.synthetic:
+        configs = synthetic_configs(args)
+        bench_synthetic(args.synthetic, args.laps, args.loop_every, configs, args.cpu)
+        return 0
+    config = Isam2Config(
+        relinearize_threshold=args.relinearize_threshold or 0.1,
+        relinearize_skip=args.relinearize_skip or 10,
+    )
+    bench_g2o(args.graphs, args.data, config)
     return 0
 
 

@@ -94,6 +94,7 @@ def load_sor_chain(rev: str, folder: str) -> types.ModuleType:
     """slam.preprocess.sor of revision rev with the k-NN modules it uses, as files of a
     package ``sor_before`` under folder (imports rewired to it; numba caches beside them)."""
     import importlib
+    import importlib.util
 
     pkg = os.path.join(folder, "sor_before")
     os.makedirs(pkg, exist_ok=True)
@@ -108,7 +109,11 @@ def load_sor_chain(rev: str, folder: str) -> types.ModuleType:
         ).stdout
         with open(os.path.join(pkg, f"{name}.py"), "w") as f:
             f.write(src.replace("slam.preprocess.", "sor_before."))
-    sys.path.insert(0, folder)
+    spec = importlib.util.spec_from_file_location(
+        "sor_before", os.path.join(pkg, "__init__.py"), submodule_search_locations=[pkg]
+    )
+    sys.modules["sor_before"] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sys.modules["sor_before"])
     return importlib.import_module("sor_before.sor")
 
 
@@ -380,6 +385,65 @@ def scan_steps(repeat: int) -> None:
         print(f"  {name:20s} {n:7d}" + "".join(f" {best[s]:11.2f}" for s in steps))
 
 
+def stage_rows(xyz, ring, time_s, T, before: str | None, repeat: int) -> None:
+    """Wall / CPU ms per scan of every stage (and of revision ``before``) against open3d's
+    statistical outlier removal (the reference R)."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    after = {name: mod for name, (_, mod) in MODULES.items()}
+    runs = {"after": stages(after, xyz, ring, time_s, T)}
+    if before:
+        runs = {"before": stages(load_revision(before), xyz, ring, time_s, T), **runs}
+    ref = timed(lambda: pc.remove_statistical_outlier(11, 1.0), repeat)
+    print(f"{len(xyz)} points, median of {repeat} runs, load average {os.getloadavg()[0]:.2f}")
+    print(f"  open3d remove_statistical_outlier (reference R) {ref:7.1f} ms")
+    head = "".join(f"{k + ' wall':>12s} {'cpu':>6s} {'x R':>5s}" for k in runs)
+    print(f"  {'stage (ms per scan)':36s}{head}")
+    for name in runs["after"]:
+        res = timed_pair({k: run[name] for k, run in runs.items()}, repeat)
+        cols = "".join(f"{w:12.1f} {c:6.1f} {w / ref:5.2f}" for w, c in res.values())
+        print(f"  {name:36s}{cols}")
+
+
+def same_as_before(xyz, ring, time_s, T, before: str) -> None:
+    """Whether SOR, the features and deskew give what revision ``before`` gives."""
+    b = load_revision(before)
+    for fn in ("classic_sor", "weighted_sor"):
+        same = np.array_equal(getattr(b["sor"], fn)(xyz), getattr(sor_mod, fn)(xyz))
+        print(f"  {fn} keep-mask identical to {before}: {same}")
+    cfg = slam.features.loam.FeatureConfig(use_covariance_curvature=True)
+    fb = b["loam"].extract_features(xyz, ring, b["loam"].FeatureConfig(**vars(cfg)))
+    fa = slam.features.loam.extract_features(xyz, ring, cfg)
+    same = all(np.array_equal(getattr(fb, f), getattr(fa, f)) for f in ("edge_idx", "plane_idx"))
+    print(f"  features (with kappa) identical to {before}: {same}")
+    db = b["deskew"].deskew(xyz, time_s, T, 0.1)
+    err = np.abs(db - deskew_mod.deskew(xyz, time_s, T, 0.1)).max()
+    print(f"  deskew max difference: {err:.1e} m")
+
+
+def synthetic_scan_rows(args: argparse.Namespace) -> None:
+    """The stages on the synthetic 16-beam scan; k-NN back ends, the check against
+    ``--before`` and the outliers each SOR removes."""
+    xyz, label, ring, time_s = scan()
+    T = np.eye(4)
+    T[:3, :3] = o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([0.0, 0.0, 0.05]))
+    T[:3, 3] = [0.1, 0.0, 0.0]
+    stage_rows(xyz, ring, time_s, T, args.before, args.repeat)
+    if args.knn:
+        print("  k-NN, 28.8k points, k=11 (build + query):")
+        for name, ms in knn_rows(xyz, args.repeat).items():
+            print(f"    {name:34s} {ms:8.1f} ms")
+    if args.before:
+        same_as_before(xyz, ring, time_s, T, args.before)
+    for name, keep in (
+        ("classic", sor_mod.classic_sor(xyz)),
+        ("weighted", sor_mod.weighted_sor(xyz)),
+    ):
+        print(
+            f"  {name:9s} outliers removed {1 - keep[label == 1].mean():6.1%}"
+            f"  surface kept {keep[label == 0].mean():6.1%}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
@@ -396,61 +460,14 @@ def main() -> None:
         numba.set_num_threads(args.threads)
     if args.steps:
         scan_steps(args.repeat)
-        return
-    if args.banded:
+    elif args.banded:
         scan_rows_banded(args.repeat)
-        return
-    if args.scans and args.before:
+    elif args.scans and args.before:
         scan_rows_before(args.before, args.repeat)
-        return
-    if args.scans:
+    elif args.scans:
         scan_rows(args.repeat)
-        return
-    xyz, label, ring, time_s = scan()
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-    T = np.eye(4)
-    T[:3, :3] = o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([0.0, 0.0, 0.05]))
-    T[:3, 3] = [0.1, 0.0, 0.0]
-    after = {name: mod for name, (_, mod) in MODULES.items()}
-    runs = {"after": stages(after, xyz, ring, time_s, T)}
-    if args.before:
-        runs = {"before": stages(load_revision(args.before), xyz, ring, time_s, T), **runs}
-    ref = timed(lambda: pc.remove_statistical_outlier(11, 1.0), args.repeat)
-    print(f"{len(xyz)} points, median of {args.repeat} runs, load average {os.getloadavg()[0]:.2f}")
-    print(f"  open3d remove_statistical_outlier (reference R) {ref:7.1f} ms")
-    head = "".join(f"{k + ' wall':>12s} {'cpu':>6s} {'x R':>5s}" for k in runs)
-    print(f"  {'stage (ms per scan)':36s}{head}")
-    for name in runs["after"]:
-        res = timed_pair({k: run[name] for k, run in runs.items()}, args.repeat)
-        cols = "".join(f"{w:12.1f} {c:6.1f} {w / ref:5.2f}" for w, c in res.values())
-        print(f"  {name:36s}{cols}")
-    if args.knn:
-        print("  k-NN, 28.8k points, k=11 (build + query):")
-        for name, ms in knn_rows(xyz, args.repeat).items():
-            print(f"    {name:34s} {ms:8.1f} ms")
-    if args.before:
-        b = load_revision(args.before)
-        for fn in ("classic_sor", "weighted_sor"):
-            same = np.array_equal(getattr(b["sor"], fn)(xyz), getattr(sor_mod, fn)(xyz))
-            print(f"  {fn} keep-mask identical to {args.before}: {same}")
-        cfg = slam.features.loam.FeatureConfig(use_covariance_curvature=True)
-        fb = b["loam"].extract_features(xyz, ring, b["loam"].FeatureConfig(**vars(cfg)))
-        fa = slam.features.loam.extract_features(xyz, ring, cfg)
-        same = all(
-            np.array_equal(getattr(fb, f), getattr(fa, f)) for f in ("edge_idx", "plane_idx")
-        )
-        print(f"  features (with kappa) identical to {args.before}: {same}")
-        db = b["deskew"].deskew(xyz, time_s, T, 0.1)
-        err = np.abs(db - deskew_mod.deskew(xyz, time_s, T, 0.1)).max()
-        print(f"  deskew max difference: {err:.1e} m")
-    for name, keep in (
-        ("classic", sor_mod.classic_sor(xyz)),
-        ("weighted", sor_mod.weighted_sor(xyz)),
-    ):
-        print(
-            f"  {name:9s} outliers removed {1 - keep[label == 1].mean():6.1%}"
-            f"  surface kept {keep[label == 0].mean():6.1%}"
-        )
+    else:
+        synthetic_scan_rows(args)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ small_gicp and KISS-ICP run on the same scans in the same process.
         [--pair-spread]
 
 --set overrides apply to every run of our recipes; each --variant runs every recipe once
-more with its overrides (an A/B in one session: same load, same scans), as
+more with its overrides (an A/B in one run: same load, same scans), as
 ``benchmarks/bench_scenes.py`` does.
 
 Sequences with reference poses (APE after SE(3) alignment and RPE over one frame, evo via
@@ -17,7 +17,7 @@ data's PROVENANCE.txt; 30 indoor Hilti scans (Hesai PandarXT-32, a static start 
 dropped frame); 39 nuScenes HDL-32E keyframes at 2 Hz (1-5 m apart). Ours run through
 ``slam.pipeline.Pipeline`` (beam model inferred from the first scans, as ``slam run``);
 small_gicp: VGICP scan-to-map against a 1 m GaussianVoxelMap on 0.25 m downsampled clouds
-(benchmarks/bench_frontends.py); KISS-ICP: its ``KissICP`` pipeline with its default config
+(``slam.bench.peers``); KISS-ICP: its ``KissICP`` pipeline with its default config
 (max range 100 m, voxel 1 m; no deskew: the scans carry no per-point time).
 
 KITTI-raw (22 HDL-64E scans, no ground truth): the map is the judge. ``map blur`` is the
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tarfile
 import tempfile
 import time
@@ -40,9 +39,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import small_gicp
 from scipy.spatial.transform import Rotation
 
+from slam.bench.peers import (
+    kiss_icp_default_config,
+    kiss_icp_track,
+    motion_error,
+    small_gicp_odometry,
+    small_gicp_pair,
+)
 from slam.config import load_config
 from slam.eval.map_blur import map_blur
 from slam.eval.metrics import EvalOptions, evaluate_arrays
@@ -50,9 +55,6 @@ from slam.io.folders import cloud_files, read_cloud
 from slam.io.kitti import KittiSource
 from slam.pipeline import Pipeline
 from slam.types import Scan
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_frontends import small_gicp_odometry  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RECIPES = ("improved_floam", "floam", "lego_loam", "lego_lpb")
@@ -151,17 +153,9 @@ def run_small_gicp(scans: list[Scan]) -> Run:
 
 
 def run_kiss_icp(scans: list[Scan]) -> Run:
-    from kiss_icp.config import load_config as kiss_config
-    from kiss_icp.kiss_icp import KissICP
-
-    cfg = kiss_config(None)
-    cfg.data.deskew = False
-    odom = KissICP(cfg)
+    cfg = kiss_icp_default_config()
     c = time.process_time()
-    poses = []
-    for s in scans:
-        odom.register_frame(s.xyz, np.zeros(0))
-        poses.append(odom.last_pose.copy())
+    poses = [T for _, T in kiss_icp_track(scans, cfg)]
     return Run(np.asarray(poses), time.process_time() - c)
 
 
@@ -188,23 +182,6 @@ def accuracy(run: Run, gt: np.ndarray) -> dict:
         "rpe_max_cm": 100 * res.rpe_trans["max"],
         "rpe_deg": res.rpe_rot["mean"],
     }
-
-
-def small_gicp_pair(
-    target: np.ndarray, source: np.ndarray, voxel: float = 0.25, kind: str = "GICP"
-) -> np.ndarray:
-    """small_gicp's scan-to-scan ``kind`` registration: T_target_source from the identity."""
-    tgt, tree = small_gicp.preprocess_points(target, voxel, num_threads=2)
-    src, _ = small_gicp.preprocess_points(source, voxel, num_threads=2)
-    res = small_gicp.align(tgt, src, tree, np.eye(4), registration_type=kind, num_threads=2)
-    return res.T_target_source
-
-
-def motion_error(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    """Translation (m) and rotation (deg) of A^-1 B."""
-    D = np.linalg.inv(A) @ B
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
 
 
 def delta(T: np.ndarray, T_ref: np.ndarray) -> str:

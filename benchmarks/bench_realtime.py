@@ -114,43 +114,21 @@ def run_ours(
 
 
 PEER_CODE = """
-import json, sys, time
+import itertools, sys
 import numpy as np
-sys.path.insert(0, sys.argv[4])
+from slam.bench import peers
 from slam.io.source import open_source
 from slam.types import Scan
 peer, path, frames = sys.argv[1], sys.argv[2], int(sys.argv[3])
-scans = (s for s in open_source(path) if isinstance(s, Scan))
-poses, stamps = [], []
+scans = itertools.islice((s for s in open_source(path) if isinstance(s, Scan)), frames)
 if peer == "small_gicp":
-    import small_gicp
-    vmap = small_gicp.GaussianVoxelMap(1.0)
-    vmap.set_lru(horizon=100, clear_cycle=10)
-    T, motion = np.eye(4), np.eye(4)
-    for k, scan in enumerate(scans):
-        if k >= frames:
-            break
-        pc, _ = small_gicp.preprocess_points(scan.xyz, 0.25, num_threads=2)
-        if k:
-            res = small_gicp.align(vmap, pc, T @ motion, num_threads=2)
-            motion = np.linalg.inv(T) @ res.T_target_source
-            T = res.T_target_source
-        vmap.insert(pc, T)
-        poses.append(T.copy()); stamps.append(scan.stamp)
+    track = peers.small_gicp_track(scans, threads=2)
 else:
-    from kiss_icp.config import KISSConfig
-    from kiss_icp.kiss_icp import KissICP
-    cfg = KISSConfig()
-    cfg.data.deskew = False
-    cfg.mapping.voxel_size = cfg.data.max_range / 100.0
-    cfg.registration.max_num_threads = 2
-    odom = KissICP(cfg)
-    for k, scan in enumerate(scans):
-        if k >= frames:
-            break
-        odom.register_frame(np.asarray(scan.xyz, dtype=np.float64), np.zeros(0))
-        poses.append(odom.last_pose.copy()); stamps.append(scan.stamp)
-np.save(sys.argv[5], np.array(poses)); np.save(sys.argv[5] + ".stamps.npy", np.array(stamps))
+    track = peers.kiss_icp_track(scans, peers.kiss_icp_two_thread_config())
+stamps, poses = [], []
+for stamp, pose in track:
+    stamps.append(stamp); poses.append(pose)
+np.save(sys.argv[4], np.array(poses)); np.save(sys.argv[4] + ".stamps.npy", np.array(stamps))
 """
 
 
@@ -171,7 +149,7 @@ def ape_of(poses_file: Path, gt: Path | None) -> float | None:
 
 def run_peer(peer: str, bag: Path, gt: Path | None, frames: int, tmp: Path) -> Run:
     poses = tmp / f"{peer}.npy"
-    argv = [sys.executable, "-c", PEER_CODE, peer, str(bag), str(frames), str(REPO), str(poses)]
+    argv = [sys.executable, "-c", PEER_CODE, peer, str(bag), str(frames), str(poses)]
     wall, cpu, peak, err = timed_process(argv)
     if err:
         return Run(peer, wall, cpu, peak, 0, error=err.strip().splitlines()[-1])

@@ -1,5 +1,5 @@
 """Accuracy, speed and memory of the front ends on simulated scenes and sensors, next to
-small_gicp's own scan-to-map odometry run on the same scans in the same session.
+small_gicp's own scan-to-map odometry run on the same scans in the same run.
 
     .venv/bin/python benchmarks/bench_scenes.py --scene urban --sensor vlp16 hdl64 \\
         --configs improved_floam floam improved_floam_loop [--frames N] \\
@@ -13,7 +13,7 @@ FLOAM's APE was 3.7 cm without calibration errors and 31 / 67 / 33 cm with draws
 (FLOAM 8.5 / 15 / 55 / 37 cm), so compare front ends over several draws.
 
 --set overrides apply to every run; each --variant LABEL:KEY=V[,KEY=V...] runs every config
-once more with its overrides (an A/B in one session: same load, same scans).
+once more with its overrides (an A/B in one run: same load, same scans).
 
 One row per scene x sensor x config: APE RMSE / mean / max (SE(3)-aligned, m), KITTI drift
 (%/10 m... the devkit's t_rel over its segment lengths, scaled ones on short runs), the
@@ -78,12 +78,8 @@ def _run(job: dict) -> dict:
 
 
 def _small_gicp(job: dict) -> dict:
-    """small_gicp's scan-to-map odometry (benchmarks/bench_frontends.py) on the same scans."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_frontends import small_gicp_odometry
-
+    """small_gicp's scan-to-map odometry (``slam.bench.peers``) on the same scans."""
+    from slam.bench.peers import small_gicp_odometry
     from slam.eval.metrics import EvalOptions, evaluate_arrays
     from slam.io.source import open_source
     from slam.io.trajectory import read_tum
@@ -145,7 +141,7 @@ def _fmt(v, unit=""):
     return f"{v}{unit}"
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", nargs="+", default=["plaza"])
     ap.add_argument("--sensor", nargs="+", default=["vlp16"])
@@ -161,51 +157,60 @@ def main() -> None:
         default=[],
         help="per-beam calibration draws of the sensor (int, or 'ideal' for none)",
     )
-    args = ap.parse_args()
-    variants = [("", [])]
-    if args.variant:
-        variants = []
-        for v in args.variant:
-            label, _, sets = v.partition(":")
-            variants.append((label, [x for x in sets.split(",") if x]))
+    return ap.parse_args()
+
+
+def parse_variants(specs: list[str]) -> list[tuple[str, list[str]]]:
+    """(label, overrides) of each ``LABEL:KEY=V[,KEY=V...]``; one unlabelled without any."""
+    if not specs:
+        return [("", [])]
+    variants = []
+    for v in specs:
+        label, _, sets = v.partition(":")
+        variants.append((label, [x for x in sets.split(",") if x]))
+    return variants
+
+
+def sequence_rows(scene: str, sensor: str, draw, args, variants, ctx, tmp: str) -> list[dict]:
+    """Every config x variant (and small_gicp) on one simulated sequence, each in a fresh
+    process; the rows print as they come."""
     from slam.sim.cache import ensure_sequence
 
-    draws = list(args.calibration_seed) or [None]
-    ctx = mp.get_context("spawn")
+    seq = ensure_sequence(
+        scene, sensor=sensor, frames=args.frames, model=calibrated(scene, sensor, draw)
+    )
+    label = sensor if draw is None else f"{sensor} cal {draw}"
+    base = {
+        "scene": scene,
+        "sensor": label,
+        "bag": str(seq.bag),
+        "gt": str(seq.ground_truth),
+        "frames": args.frames,
+    }
+    jobs = [
+        {
+            **base,
+            "config": c,
+            "variant": vlabel,
+            "overrides": args.overrides + sets,
+            "out": f"{tmp}/{scene}-{sensor}-{draw}-{c}-{vlabel}",
+        }
+        for c in args.configs
+        for vlabel, sets in variants
+    ]
     rows = []
-    with tempfile.TemporaryDirectory(prefix="bench_scenes_") as tmp:
-        for scene in args.scene:
-            for sensor, draw in ((s, d) for s in args.sensor for d in draws):
-                seq = ensure_sequence(
-                    scene, sensor=sensor, frames=args.frames, model=calibrated(scene, sensor, draw)
-                )
-                label = sensor if draw is None else f"{sensor} cal {draw}"
-                base = {
-                    "scene": scene,
-                    "sensor": label,
-                    "bag": str(seq.bag),
-                    "gt": str(seq.ground_truth),
-                    "frames": args.frames,
-                }
-                jobs = [
-                    {
-                        **base,
-                        "config": c,
-                        "variant": vlabel,
-                        "overrides": args.overrides + sets,
-                        "out": f"{tmp}/{scene}-{sensor}-{draw}-{c}-{vlabel}",
-                    }
-                    for c in args.configs
-                    for vlabel, sets in variants
-                ]
-                for job in jobs:
-                    with ctx.Pool(1) as pool:
-                        rows.append(pool.apply(_run, (job,)))
-                    print(json.dumps(rows[-1]), flush=True)
-                if not args.no_reference:
-                    with ctx.Pool(1) as pool:
-                        rows.append(pool.apply(_small_gicp, (base,)))
-                    print(json.dumps(rows[-1]), flush=True)
+    for job in jobs:
+        with ctx.Pool(1) as pool:
+            rows.append(pool.apply(_run, (job,)))
+        print(json.dumps(rows[-1]), flush=True)
+    if not args.no_reference:
+        with ctx.Pool(1) as pool:
+            rows.append(pool.apply(_small_gicp, (base,)))
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def print_table(rows: list[dict]) -> None:
     print(
         "| scene | sensor | front end | frames | APE RMSE / mean / max (m) | drift % "
         "| max step err (m) | frames/s | peak MiB | degenerate / lost | loops |"
@@ -219,6 +224,19 @@ def main() -> None:
             f"{_fmt(r['peak_mb'])} | {_fmt(r['degenerate'])} / {_fmt(r['lost'])} | "
             f"{_fmt(r['loops'])} |"
         )
+
+
+def main() -> None:
+    args = parse_args()
+    variants = parse_variants(args.variant)
+    draws = list(args.calibration_seed) or [None]
+    ctx = mp.get_context("spawn")
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_scenes_") as tmp:
+        for scene in args.scene:
+            for sensor, draw in ((s, d) for s in args.sensor for d in draws):
+                rows += sequence_rows(scene, sensor, draw, args, variants, ctx, tmp)
+    print_table(rows)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
 

@@ -6,7 +6,8 @@ stores every frame's Odometry (pose, relative motion, information, keyframe flag
 keyframes' clouds and scalar extras) in one .npz; ``replay`` feeds those to a Pipeline
 with any factor / back-end settings (``--set factors.loop_closure.x=...``), writes the
 usual run outputs (trajectory.tum, graph.g2o, loops.csv, ...) and prints APE of odometry and
-optimised trajectory and the false loops against the ground truth (loop_audit.py).
+optimised trajectory and the false loops against the ground truth (loop_audit.py). The
+recorder and the replay are ``slam.bench.loop_replay``.
 A replay gives the same trajectory as ``slam run`` of the same recipe (the loop plugin reads
 only keyframes and estimates).
 
@@ -22,137 +23,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from loop_audit import audit, summary  # noqa: E402
-
-from slam import plugins  # noqa: E402
-from slam.config import load_config  # noqa: E402
-from slam.types import Odometry, Scan  # noqa: E402
-
-
-class Recorder:
-    """Wraps a front end and keeps what it returns (clouds of keyframes only)."""
-
-    def __init__(self, inner: Any):
-        self.inner = inner
-        self.rows: list[dict[str, Any]] = []
-        self.clouds: dict[int, np.ndarray] = {}
-
-    def process(self, scan: Scan) -> Odometry:
-        odom = self.inner.process(scan)
-        i = len(self.rows)
-        extras = {
-            k: v
-            for k, v in odom.extras.items()
-            if isinstance(v, (bool, int, float, np.generic)) and not k.startswith("_")
-        }
-        self.rows.append(
-            {
-                "stamp": float(odom.stamp),
-                "pose": np.asarray(odom.pose, float),
-                "kf": bool(odom.is_keyframe),
-                "relative": np.asarray(odom.relative, float),
-                "info": np.asarray(odom.info, float),
-                # the keyframe information before the front end's odometry_ambiguity loosened it
-                "info_raw": np.asarray(odom.extras.get("_info_before_ambiguity", odom.info), float),
-                "extras": {k: float(v) for k, v in extras.items()},
-            }
-        )
-        if odom.is_keyframe or i == 0:
-            self.clouds[i] = np.asarray(odom.cloud, dtype=np.float32)[:, :3]
-        return odom
-
-
-def record(bag: Path, config: str, out: Path, overrides: list[str], max_frames: int | None) -> None:
-    from slam.io.source import open_source
-    from slam.pipeline import Pipeline
-    from slam.run import disable_loops
-
-    cfg = load_config(config, overrides)
-    disable_loops(cfg)
-    rec = Recorder(plugins.instantiate("slam.frontends", cfg.frontend, "frontend"))
-    pipe = Pipeline(cfg, frontend=rec)
-    t0 = time.process_time()
-    pipe.run(open_source(bag, topic=cfg.source.topic), max_frames=max_frames)
-    cpu = time.process_time() - t0
-    rows = rec.rows
-    idx = np.array(sorted(rec.clouds), dtype=np.int64)
-    sizes = np.array([len(rec.clouds[i]) for i in idx], dtype=np.int64)
-    np.savez(
-        out,
-        stamps=np.array([r["stamp"] for r in rows]),
-        poses=np.stack([r["pose"] for r in rows]),
-        is_kf=np.array([r["kf"] for r in rows]),
-        relative=np.stack([r["relative"] for r in rows]),
-        info=np.stack([r["info"] for r in rows]),
-        info_raw=np.stack([r["info_raw"] for r in rows]),
-        cloud_frames=idx,
-        cloud_sizes=sizes,
-        clouds=np.concatenate([rec.clouds[i] for i in idx]) if len(idx) else np.zeros((0, 3)),
-        extras=json.dumps([r["extras"] for r in rows]),
-        meta=json.dumps({"bag": str(bag), "config": config, "overrides": overrides,
-                         "cpu_seconds": cpu}),
-    )  # fmt: skip
-    print(f"recorded {len(rows)} frames, {len(idx)} keyframes, {cpu:.0f} CPU s -> {out}")
-
-
-class ReplayFrontend:
-    """Plays a recording back as the front end emitted it."""
-
-    def __init__(self, rec: dict[str, Any]):
-        self.rec = rec
-        off = np.concatenate([[0], np.cumsum(rec["cloud_sizes"])])
-        self.cloud = {
-            int(f): rec["clouds"][off[k] : off[k + 1]] for k, f in enumerate(rec["cloud_frames"])
-        }
-        self.extras = json.loads(str(rec["extras"]))
-
-    def process(self, scan: Scan) -> Odometry:
-        i = scan.index
-        r = self.rec
-        return Odometry(
-            float(r["stamps"][i]), r["poses"][i], bool(r["is_kf"][i]), r["relative"][i],
-            r["info"][i], self.cloud.get(i), dict(self.extras[i]),
-        )  # fmt: skip
-
-
-def load_recording(path: Path) -> dict[str, Any]:
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
-def replay(
-    rec: dict[str, Any], config: str, overrides: list[str], out: Path, gt: Path | None
-) -> dict[str, Any]:
-    """Run the pipeline over the recording; outputs in ``out``; APE and false loops."""
-    from slam.outputs import write_outputs
-    from slam.pipeline import Pipeline, resolved_config
-
-    cfg = load_config(config, [*overrides, "source.beam_scans=0"])
-    pipe = Pipeline(cfg, frontend=ReplayFrontend(rec))
-    scans = (Scan(float(t), np.zeros((0, 3)), index=i) for i, t in enumerate(rec["stamps"]))
-    t0 = time.process_time()
-    pipe.run(scans)
-    cpu = time.process_time() - t0
-    out.mkdir(parents=True, exist_ok=True)
-    write_outputs(pipe, out, resolved_config=resolved_config(cfg))
-    res: dict[str, Any] = {"cpu_seconds": round(cpu, 1), "loops_closed": pipe.state.loops_closed}
-    if gt is not None:
-        from slam.eval.metrics import evaluate
-
-        res["ape_odometry"] = evaluate(out / "odometry.tum", gt).ape_trans["rmse"]
-        res["ape_loop"] = evaluate(out / "trajectory.tum", gt).ape_trans["rmse"]
-        if (out / "loops.csv").exists():
-            res.update(summary(audit(out, gt)))
-    (out / "replay.json").write_text(json.dumps(res, indent=2))
-    return res
+from slam.bench.loop_replay import load_recording, record, replay
 
 
 def figures(runs: list[str], gt: Path, out: Path, prefix: str) -> list[Path]:

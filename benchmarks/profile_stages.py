@@ -10,7 +10,7 @@ the recipe given. Front-end stages are the front end's own timings (``*_ms`` ext
 per frame); factor plugins and the back end are the pipeline's stage clocks, given per
 frame and per keyframe; the loop plugin's own detect/verify clocks when it reports them.
 ``frames/s`` is the whole pipeline; ``x small_gicp`` divides it by small_gicp's VGICP
-scan-to-map odometry (``bench_frontends.small_gicp_odometry``) on the same scans, timed
+scan-to-map odometry (``slam.bench.peers.small_gicp_odometry``) on the same scans, timed
 right after it on the same machine state. ``... CPU (first100/last100)``: CPU ms of each
 stage per frame over the first and last 100 frames (metrics.json stage_cpu_ms_*), which,
 unlike wall time, a loaded machine does not inflate. --cpu adds ``cpu <stage>`` rows: CPU ms
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import sys
 import tarfile
 import tempfile
 import time
@@ -33,17 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from bench_frontends import small_gicp_odometry  # noqa: E402
-
-from slam.config import load_config  # noqa: E402
-from slam.io.folders import cloud_files, read_cloud  # noqa: E402
-from slam.io.source import open_source  # noqa: E402
-from slam.outputs import metrics  # noqa: E402
-from slam.pipeline import Pipeline  # noqa: E402
-from slam.sim.cache import ensure_sequence  # noqa: E402
-from slam.types import Scan  # noqa: E402
+from slam.bench.peers import small_gicp_odometry
+from slam.config import load_config
+from slam.io.folders import cloud_files, read_cloud
+from slam.io.source import open_source
+from slam.outputs import metrics
+from slam.pipeline import Pipeline
+from slam.sim.cache import ensure_sequence
+from slam.types import Scan
 
 KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_drive"
 DATASETS = ("corridor", "park", "urban", "urban-hdl64", "urban-os128", "kitti-raw")
@@ -204,7 +200,7 @@ def growth(
                 float(np.mean([r.get(k, 0.0) for r in last]))) for k in keys}  # fmt: skip
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--config", default="improved_floam_loop")
@@ -226,47 +222,34 @@ def main() -> None:
         help="instead: the front end over the whole sequence SCENE, CPU ms per stage over its"
         " first / last 100 frames",
     )
-    args = ap.parse_args()
-    if args.growth:
-        config = args.config.removesuffix("_loop")
-        print(f"{args.growth}, {config}: CPU ms per frame, first / last 100 frames")
-        for key, (a, b) in growth(args.growth, config).items():
-            change = f"{100 * (b / a - 1):+6.1f} %" if a else ""
-            print(f"{key:28s} {a:12.2f} {b:12.2f}  {change}")
-        return
-    columns: dict[str, dict[str, float]] = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in args.datasets:
-            scans = load_scans(name, args.frames, Path(tmp))
-            variants = [("", [])] + [
-                (v.partition(":")[0], [x for x in v.partition(":")[2].split(",") if x])
-                for v in args.variant
-            ]
-            for label, sets in variants:
-                row = profile(scans, args.config, args.overrides + sets, args.cpu)
-                c = time.process_time()
-                t = time.perf_counter()
-                small_gicp_odometry(scans)
-                ref_fps = len(scans) / (time.perf_counter() - t)
-                row["small_gicp odometry frames/s"] = ref_fps
-                row["small_gicp odometry CPU ms/frame"] = (
-                    1e3 * (time.process_time() - c) / len(scans)
-                )
-                row["x small_gicp"] = row["frames/s"] / ref_fps
-                row["x small_gicp (CPU)"] = (
-                    row["small_gicp odometry CPU ms/frame"] / row["frame_cpu_ms_first100"]
-                    if row.get("frame_cpu_ms_first100")
-                    else float("nan")
-                )
-                col = f"{name} ({len(scans)})" + (f" [{label}]" if label else "")
-                columns[col] = row
-                fps, ratio = row["frames/s"], row["x small_gicp"]
-                print(f"{col}: {fps:.1f} frames/s, x{ratio:.3f}", flush=True)
+    return ap.parse_args()
+
+
+def with_reference(row: dict, scans: list[Scan]) -> dict:
+    """``row`` with small_gicp's odometry on the same scans, timed right after it: its
+    frames/s and CPU ms per frame and the ratios to them."""
+    c = time.process_time()
+    t = time.perf_counter()
+    small_gicp_odometry(scans)
+    ref_fps = len(scans) / (time.perf_counter() - t)
+    row["small_gicp odometry frames/s"] = ref_fps
+    row["small_gicp odometry CPU ms/frame"] = 1e3 * (time.process_time() - c) / len(scans)
+    row["x small_gicp"] = row["frames/s"] / ref_fps
+    row["x small_gicp (CPU)"] = (
+        row["small_gicp odometry CPU ms/frame"] / row["frame_cpu_ms_first100"]
+        if row.get("frame_cpu_ms_first100")
+        else float("nan")
+    )
+    return row
+
+
+def print_columns(columns: dict[str, dict[str, float]], config: str, markdown: bool) -> None:
+    """One row per stage, one column per dataset (and variant)."""
     stages = list(dict.fromkeys(k for row in columns.values() for k in row))
     names = list(columns)
     print()
-    print(f"ms per frame unless stated; config {args.config}")
-    if args.markdown:
+    print(f"ms per frame unless stated; config {config}")
+    if markdown:
         print("| stage | " + " | ".join(names) + " |")
         print("|---|" + "---:|" * len(names))
     else:
@@ -274,10 +257,37 @@ def main() -> None:
     for stage in stages:
         cells = [columns[n].get(stage) for n in names]
         text = ["-" if c is None else f"{c:.2f}" for c in cells]
-        if args.markdown:
+        if markdown:
             print(f"| {stage} | " + " | ".join(text) + " |")
         else:
             print(f"{stage:44s}" + "".join(f"{c:>22s}" for c in text))
+
+
+def main() -> None:
+    args = parse_args()
+    if args.growth:
+        config = args.config.removesuffix("_loop")
+        print(f"{args.growth}, {config}: CPU ms per frame, first / last 100 frames")
+        for key, (a, b) in growth(args.growth, config).items():
+            change = f"{100 * (b / a - 1):+6.1f} %" if a else ""
+            print(f"{key:28s} {a:12.2f} {b:12.2f}  {change}")
+        return
+    variants = [("", [])] + [
+        (v.partition(":")[0], [x for x in v.partition(":")[2].split(",") if x])
+        for v in args.variant
+    ]
+    columns: dict[str, dict[str, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.datasets:
+            scans = load_scans(name, args.frames, Path(tmp))
+            for label, sets in variants:
+                row = profile(scans, args.config, args.overrides + sets, args.cpu)
+                row = with_reference(row, scans)
+                col = f"{name} ({len(scans)})" + (f" [{label}]" if label else "")
+                columns[col] = row
+                fps, ratio = row["frames/s"], row["x small_gicp"]
+                print(f"{col}: {fps:.1f} frames/s, x{ratio:.3f}", flush=True)
+    print_columns(columns, args.config, args.markdown)
 
 
 if __name__ == "__main__":

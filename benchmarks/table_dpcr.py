@@ -152,7 +152,48 @@ def _md(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
     return "\n".join([head, sep, *body])
 
 
-def main(argv: list[str] | None = None) -> None:
+WIDTH_COLUMNS = [
+    ("S", "S (m)", "g"),
+    ("regions", "regions", "d"),
+    ("storage_bytes", "storage (bytes)", ",d"),
+    ("ms_per_scan", "time/scan (ms)", ".1f"),
+    ("graph_ms", "graph (ms/opt.)", ".1f"),
+    ("optimizations", "opt.", "d"),
+    ("loc_err_ave", "LocErr_ave (m)", ".3f"),
+    ("ape_rmse", "APE RMSE (m)", ".3f"),
+]
+COMPARE_COLUMNS = [
+    ("input", "input", "s"),
+    ("method", "method", "s"),
+    ("frames", "scans", "d"),
+    ("storage_bytes", "map storage (bytes)", ",d"),
+    ("ms_per_scan", "time/scan (ms)", ".1f"),
+    ("speed_vs_baseline", "speed vs baseline", ".2f"),
+    ("graph_ms", "graph (ms/opt.)", ".1f"),
+    ("optimizations", "opt.", "d"),
+    ("wall_median_m", "wall median (m)", ".3f"),
+    ("wall_p90_m", "wall p90 (m)", ".3f"),
+    ("wall_doubled", "walls > 15 cm", ".2f"),
+    ("wall_floor_m", "first 50 scans (m)", ".3f"),
+    ("wall_window_floor_m", "windows of 100 (m)", ".3f"),
+    ("wall_face_median_m", "face median (m)", ".3f"),
+    ("wall_face_p90_m", "face p90 (m)", ".3f"),
+    ("wall_face_doubled", "faces > 15 cm", ".2f"),
+    ("wall_face_floor_m", "face, first 50 (m)", ".3f"),
+    ("wall_carved_median_m", "map_server median (m)", ".3f"),
+    ("wall_carved_p90_m", "map_server p90 (m)", ".3f"),
+    ("wall_window_floor_carved_m", "map_server windows (m)", ".3f"),
+    ("ape_rmse", "APE RMSE (m)", ".3f"),
+    ("loc_err_ave", "LocErr_ave (m)", ".3f"),
+]
+METHODS = {  # --methods: (config, label, overrides)
+    "dpcr": ("dpcr2d_regions", "DPCR", []),  # the paper's region graph
+    "visit": ("dpcr2d", "DPCR visit graph", []),  # the default
+    "icp": ("configs/icp2d.yaml", "ICP baseline", []),
+}
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("runs/table_dpcr"))
     ap.add_argument("--plan", default="rooms2d")
@@ -164,85 +205,52 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--skip-sim", action="store_true", help="Table 2 on the real logs only")
     ap.add_argument("--methods", nargs="*", default=["dpcr", "icp"],
                     help="Table 2 methods: dpcr, visit (dpcr2d + visit graph), icp")  # fmt: skip
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def width_rows(widths: list[float], log: Path, gt, out: Path) -> list[dict]:
+    """The region graph at every region width S on the simulated log."""
+    rows = []
+    for S in widths:
+        sets = [f"frontend.region_width={S}", f"factors.region_edges.region_width={S}"]
+        r = run("dpcr2d_regions", log, out / f"width_{S:g}", sets, gt=gt)
+        rows.append({"S": S, **r})
+        print(f"S={S}: {r}", flush=True)
+    return rows
+
+
+def compare_rows(args: argparse.Namespace, log: Path, gt, out: Path) -> list[dict]:
+    """Table 2: every method on the simulated log and the real ones; speed vs ICP."""
+    rows = []
+    inputs = [] if args.skip_sim else [(args.plan, log, gt, None)]
+    frames = args.real_frames or None  # 0: the whole log
+    inputs += [(n, DATA / f"{n}.clf.bz2", None, frames) for n in args.real]
+    for name, path, truth, frames in inputs:
+        for m in args.methods:
+            config, label, sets = METHODS[m]
+            r = run(config, path, out / f"{name}_{m}", sets, truth, frames, True)
+            rows.append({"input": name, "method": label, **r})
+            print(f"{name} {label}: {r}", flush=True)
+        if "icp" in args.methods and len(args.methods) > 1:
+            mine = rows[-len(args.methods) :]
+            base = mine[args.methods.index("icp")]
+            for r in mine:
+                r["speed_vs_baseline"] = base["ms_per_scan"] / r["ms_per_scan"]
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     log, gt = scene(out / "scene", args.plan)
     results: dict = {}
     if not args.skip_width:
-        rows = []
-        for S in args.widths:
-            sets = [f"frontend.region_width={S}", f"factors.region_edges.region_width={S}"]
-            r = run("dpcr2d_regions", log, out / f"width_{S:g}", sets, gt=gt)
-            rows.append({"S": S, **r})
-            print(f"S={S}: {r}", flush=True)
-        results["width"] = rows
-        print(
-            _md(
-                rows,
-                [
-                    ("S", "S (m)", "g"),
-                    ("regions", "regions", "d"),
-                    ("storage_bytes", "storage (bytes)", ",d"),
-                    ("ms_per_scan", "time/scan (ms)", ".1f"),
-                    ("graph_ms", "graph (ms/opt.)", ".1f"),
-                    ("optimizations", "opt.", "d"),
-                    ("loc_err_ave", "LocErr_ave (m)", ".3f"),
-                    ("ape_rmse", "APE RMSE (m)", ".3f"),
-                ],
-            )
-        )
+        results["width"] = width_rows(args.widths, log, gt, out)
+        print(_md(results["width"], WIDTH_COLUMNS))
     if not args.skip_compare:
-        rows = []
-        inputs = [] if args.skip_sim else [(args.plan, log, gt, None)]
-        frames = args.real_frames or None  # 0: the whole log
-        inputs += [(n, DATA / f"{n}.clf.bz2", None, frames) for n in args.real]
-        for name, path, truth, frames in inputs:
-            configs = {
-                "dpcr": ("dpcr2d_regions", "DPCR", []),  # the paper's region graph
-                "visit": ("dpcr2d", "DPCR visit graph", []),  # the default
-                "icp": ("configs/icp2d.yaml", "ICP baseline", []),
-            }
-            for m in args.methods:
-                config, label, sets = configs[m]
-                r = run(config, path, out / f"{name}_{m}", sets, truth, frames, True)
-                rows.append({"input": name, "method": label, **r})
-                print(f"{name} {label}: {r}", flush=True)
-            if "icp" in args.methods and len(args.methods) > 1:
-                mine = rows[-len(args.methods) :]
-                base = mine[args.methods.index("icp")]
-                for r in mine:
-                    r["speed_vs_baseline"] = base["ms_per_scan"] / r["ms_per_scan"]
-        results["compare"] = rows
-        print(
-            _md(
-                rows,
-                [
-                    ("input", "input", "s"),
-                    ("method", "method", "s"),
-                    ("frames", "scans", "d"),
-                    ("storage_bytes", "map storage (bytes)", ",d"),
-                    ("ms_per_scan", "time/scan (ms)", ".1f"),
-                    ("speed_vs_baseline", "speed vs baseline", ".2f"),
-                    ("graph_ms", "graph (ms/opt.)", ".1f"),
-                    ("optimizations", "opt.", "d"),
-                    ("wall_median_m", "wall median (m)", ".3f"),
-                    ("wall_p90_m", "wall p90 (m)", ".3f"),
-                    ("wall_doubled", "walls > 15 cm", ".2f"),
-                    ("wall_floor_m", "first 50 scans (m)", ".3f"),
-                    ("wall_window_floor_m", "windows of 100 (m)", ".3f"),
-                    ("wall_face_median_m", "face median (m)", ".3f"),
-                    ("wall_face_p90_m", "face p90 (m)", ".3f"),
-                    ("wall_face_doubled", "faces > 15 cm", ".2f"),
-                    ("wall_face_floor_m", "face, first 50 (m)", ".3f"),
-                    ("wall_carved_median_m", "map_server median (m)", ".3f"),
-                    ("wall_carved_p90_m", "map_server p90 (m)", ".3f"),
-                    ("wall_window_floor_carved_m", "map_server windows (m)", ".3f"),
-                    ("ape_rmse", "APE RMSE (m)", ".3f"),
-                    ("loc_err_ave", "LocErr_ave (m)", ".3f"),
-                ],
-            )
-        )
+        results["compare"] = compare_rows(args, log, gt, out)
+        print(_md(results["compare"], COMPARE_COLUMNS))
     (out / "table_dpcr.json").write_text(json.dumps(results, indent=2, default=float))
 
 

@@ -21,20 +21,20 @@ follows the recipe as its modules land. The ground factor is also added to the o
 front ends (``--set factors.ground.enabled=true``) when a ``ground`` factor plugin exists.
 The ground factor is a back-end plugin and the front end never sees the back end
 (DESIGN.md), so a "+ ground factor" row of a config that also runs plainly is not a second
-front-end run: the plain run records its front end (``loop_replay.Recorder``, ``record.npz``
-in its folder) and the ground row replays that recording with the factor on
-(``loop_replay.replay``; seconds instead of ~11 CPU minutes on the whole S route; ``fps`` is
-then the recorded run's). ``--no-replay`` runs the ground rows in full.
+front-end run: the plain run records its front end (``slam.bench.loop_replay.Recorder``,
+``record.npz`` in its folder) and the ground row replays that recording with the factor on
+(``slam.bench.loop_replay.replay``; seconds instead of ~11 CPU minutes on the whole S
+route; ``fps`` is then the recorded run's). ``--no-replay`` runs the ground rows in full.
 
 Loop runs (a ``loops.csv`` in the run folder) get the loop table: APE of the same run's
 odometry (``odometry.tum``) and optimised trajectory, loops, and false loops counted against
-the ground truth by ``benchmarks/loop_audit.py`` (a loop edge of graph.g2o more than 1 m or
+the ground truth by ``slam.bench.loop_audit`` (a loop edge of graph.g2o more than 1 m or
 3 deg from the true relative pose of its keyframes); rows saved before the audit existed
 are audited when tabulated.
 
 Writes ``<out>/table_lego.json`` (every row) and ``<out>/table_lego.md`` (the tables);
 prints the tables. Speed: frames/s of each run, and its ratio to ``floam``'s in the same
-session (the machine is shared, so only ratios are meaningful).
+run (the machine is shared, so only ratios are meaningful).
 """
 
 from __future__ import annotations
@@ -42,140 +42,20 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from slam.bench.lego_table import BASELINE, FULL, available, jobs_for, loop_columns, run_job
+
 MAIN_CONFIGS = ("lego_loam", "lego_lpb", "improved_floam", "floam")
-BASELINE = "lego_loam"
-FULL = "lego_lpb"
 COLUMNS = ("Max", "Mean", "Median", "RMSE", "Std")  # the paper's Table 1
-NOT_MODULES = ("prior", "odometry")
-# Modules switched off by a value rather than an ``enabled`` flag: (key path under
-# ``frontend``, label, value that switches it off).
-VALUE_SWITCHES = ((("registration", "ground_weight"), "no ground residual", 0.0),)
 
 
-# ----------------------------------------------------------------------------- jobs
-
-
-def available(name: str) -> bool:
-    """Whether the recipe ``name`` loads and its front end plugin is installed."""
-    from slam.config import load_config
-    from slam.errors import SlamError
-    from slam.pipeline import resolved_config
-
-    try:
-        resolved_config(load_config(name))
-    except (SlamError, ImportError, LookupError):
-        return False
-    return True
-
-
-def _switches(name: str) -> dict[str, list[str]]:
-    """label -> overrides switching off each enabled module of the resolved recipe:
-    frontend sections with ``enabled: true``, :data:`VALUE_SWITCHES` and enabled factor
-    plugins other than prior / odometry."""
-    from slam.config import load_config
-    from slam.pipeline import resolved_config
-
-    resolved = resolved_config(load_config(name))
-    out: dict[str, list[str]] = {}
-
-    def walk(node: dict, path: list[str]) -> None:
-        for key, value in node.items():
-            if isinstance(value, dict):
-                if value.get("enabled") is True:
-                    label = f"no {'.'.join(path[1:] + [key])}"
-                    out[label] = [".".join(path + [key, "enabled"]) + "=false"]
-                walk(value, path + [key])
-
-    walk(resolved["frontend"], ["frontend"])
-    for path, label, off in VALUE_SWITCHES:
-        node = resolved["frontend"]
-        for key in path:
-            node = node.get(key) if isinstance(node, dict) else None
-        if node not in (None, off):
-            out[label] = [f"frontend.{'.'.join(path)}={off}"]
-    for fname, params in resolved["factors"].items():
-        if fname not in NOT_MODULES and params.get("enabled", True):
-            out[f"no {fname} factor"] = [f"factors.{fname}.enabled=false"]
-    return out
-
-
-def ablation_overrides(name: str = FULL, baseline: str = BASELINE) -> list[tuple[str, list[str]]]:
-    """(label, overrides) switching off, one at a time, each module that ``name`` adds to
-    ``baseline`` (enabled in ``name``, not enabled in the baseline recipe)."""
-    mine = _switches(name)
-    base = _switches(baseline) if available(baseline) else {}
-    return [(label, over) for label, over in mine.items() if base.get(label) != over]
-
-
-GROUND_PLUGIN = "slam.ground_factor:GroundFactorPlugin"
-
-
-def ground_factor_overrides() -> list[str] | None:
-    """Overrides adding the ground factor plugin to a recipe: by its entry-point name
-    ``ground`` when registered, else by import path; None when it does not exist."""
-    from slam import plugins
-
-    for spec, over in (("ground", []), (GROUND_PLUGIN, [f"factors.ground.plugin={GROUND_PLUGIN}"])):
-        try:
-            plugins.load("slam.factors", spec)
-        except Exception:  # noqa: BLE001, S112 - any failure means: not installed
-            continue
-        return [*over, "factors.ground.enabled=true"]
-    return None
-
-
-def z_errors(res) -> dict:
-    """z error (m) of the matched poses: after the table's SE(3) alignment, and from the
-    start (the first estimate pose put on the first true pose: the accumulated z drift)."""
-    dz = res.est_poses[:, 2, 3] - res.gt_poses[:, 2, 3]
-    start = res.gt_poses[0] @ np.linalg.inv(res.est_poses[0])
-    dz0 = (start @ res.est_poses)[:, 2, 3] - res.gt_poses[:, 2, 3]
-    return {
-        "z_rmse": float(np.sqrt(np.mean(dz**2))),
-        "z_max": float(np.max(np.abs(dz))),
-        "z_drift_rmse": float(np.sqrt(np.mean(dz0**2))),
-        "z_drift_end": float(dz0[-1]),
-    }
-
-
-REUSE_KEYS = ("scene", "bag", "gt", "frames", "config", "overrides")
-
-
-def _same(a, b) -> bool:
-    """Equal, overrides compared without the ground plugin's import path (the same
-    plugin by entry-point name or by path)."""
-    if isinstance(a, list) and isinstance(b, list):
-        a, b = ([o for o in x if not o.startswith("factors.ground.plugin=")] for x in (a, b))
-    return a == b
-
-
-def loop_columns(out: Path, gt: Path) -> dict:
-    """Odometry APE RMSE, loops, false loops and the median constraint error (m) of a loop
-    run (empty without loops.csv)."""
-    if not (out / "loops.csv").is_file() or not (out / "graph.g2o").is_file():
-        return {}
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from loop_audit import audit, summary
-
-    from slam.eval.metrics import evaluate
-
-    s = summary(audit(out, gt))
-    return {
-        "ape_odom_rmse": evaluate(out / "odometry.tum", gt).ape_trans["rmse"],
-        "loop_edges": s["loops"],
-        "false_loops": s["false"],
-        "loop_err_median": s["err_median_m"],
-        "loop_err_max": s["err_max_m"],
-    }
+# ----------------------------------------------------------------------------- tables
 
 
 def loop_table(rows: list[dict]) -> str:
@@ -198,186 +78,6 @@ def loop_table(rows: list[dict]) -> str:
             f"{'-' if med is None else f'{med:.3f}'} |"
         )
     return "\n".join(lines) + "\n" if n else ""
-
-
-def run_job(job: dict) -> dict:
-    """One config (+ overrides) on one sequence, in its own process; with ``reuse`` the
-    row of an earlier identical run in the same folder (``row.json``) is returned."""
-    from slam.config import load_config
-    from slam.run import run_one
-
-    # a worker started from a background job inherits SIGINT ignored (POSIX): restore
-    # Python's handler so that `kill -INT <worker>` stops the run the way Ctrl-C does
-    # (the pipeline keeps and evaluates the frames done so far)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    saved = Path(job["out"]) / "row.json"
-    if job.get("reuse") and saved.is_file():
-        row = json.loads(saved.read_text())
-        if all(_same(row.get(k), job[k]) for k in REUSE_KEYS) and "error" not in row:
-            keep = {k: job[k] for k in ("index", "label", "group", "out") if k in job}
-            return {**row, **keep, "reused": True}
-    if job.get("tabulate_only"):
-        return {**job, "not_run": True}
-    if job.get("replay_of"):
-        return replay_job(job)
-    config = load_config(job["config"], job["overrides"])
-    if job["frames"]:
-        config.source.max_frames = job["frames"]
-    out = Path(job["out"])
-    t0 = time.perf_counter()
-    try:
-        with recording(job.get("record")) as recorder:
-            summary = run_one(Path(job["bag"]), config, out, gt=Path(job["gt"]), quiet=True)
-        if recorder is not None:
-            save_recording(recorder, Path(job["record"]), job)
-    except Exception as exc:  # noqa: BLE001 - one failing run must not end the table
-        return {**job, "error": f"{type(exc).__name__}: {exc}"}
-    wall = time.perf_counter() - t0
-    metrics = json.loads((out / "metrics.json").read_text())
-    return finish_row(job, summary, metrics, wall)
-
-
-def finish_row(job: dict, summary: dict, metrics: dict, wall: float) -> dict:
-    """The table row of a finished run (also saved as ``row.json`` in its folder)."""
-    out = Path(job["out"])
-    res = summary.get("eval")
-    row = {
-        **job,
-        "frames_run": summary["frames"],
-        "keyframes": summary["keyframes"],
-        "stopped_by": summary["stopped_by"],
-        "fps": metrics.get("frames_per_second"),
-        "wall_s": round(wall, 1),
-        "loops": metrics.get("loops_closed"),
-        "lost": (metrics.get("frontend_counts") or {}).get("tracking_lost"),
-    }
-    if res is not None:
-        row.update(
-            ape=res.ape_trans,
-            ape_rot=res.ape_rot,
-            drift_pct=(res.kitti or {}).get("t_rel_pct"),
-            path_m=res.path_length,
-            ape_notes=list(res.notes),
-            **z_errors(res),
-        )
-        row.update(loop_columns(out, Path(job["gt"])))
-    (out / "row.json").write_text(json.dumps(row, indent=2, default=str))
-    return row
-
-
-@contextmanager
-def recording(path: str | None):
-    """While active, the front end every Pipeline instantiates is wrapped in a
-    ``loop_replay.Recorder`` (yielded; None without ``path``): run_one builds its own
-    Pipeline, so its plugin lookup is wrapped for the duration."""
-    if path is None:
-        yield None
-        return
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from loop_replay import Recorder
-
-    from slam import plugins
-
-    holder: list = []
-    original = plugins.instantiate
-
-    def instantiate(group, *args, **kwargs):
-        obj = original(group, *args, **kwargs)
-        if group == "slam.frontends":
-            obj = Recorder(obj)
-            holder.append(obj)
-        return obj
-
-    plugins.instantiate = instantiate
-    try:
-        yield holder
-    finally:
-        plugins.instantiate = original
-
-
-def save_recording(holder: list, path: Path, job: dict) -> None:
-    """The recorded front end output in loop_replay's .npz format."""
-    if len(holder) != 1:
-        raise RuntimeError(f"expected one recorded front end, got {len(holder)}")
-    rec = holder[0]
-    rows = rec.rows
-    idx = np.array(sorted(rec.clouds), dtype=np.int64)
-    np.savez(
-        path,
-        stamps=np.array([r["stamp"] for r in rows]),
-        poses=np.stack([r["pose"] for r in rows]),
-        is_kf=np.array([r["kf"] for r in rows]),
-        relative=np.stack([r["relative"] for r in rows]),
-        info=np.stack([r["info"] for r in rows]),
-        cloud_frames=idx,
-        cloud_sizes=np.array([len(rec.clouds[i]) for i in idx], dtype=np.int64),
-        clouds=np.concatenate([rec.clouds[i] for i in idx]) if len(idx) else np.zeros((0, 3)),
-        extras=json.dumps([r["extras"] for r in rows]),
-        meta=json.dumps({"bag": job["bag"], "config": job["config"],
-                         "overrides": job["overrides"]}),
-    )  # fmt: skip
-
-
-def replay_job(job: dict) -> dict:
-    """A back-end variant (the ground factor) of a recorded run: the recording replayed
-    with the job's overrides; the row as ``run_job``'s, fps the recorded run's."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from loop_replay import load_recording, replay
-
-    from slam.run import evaluate_run
-
-    src = Path(job["replay_of"])
-    if not src.is_file():
-        return {**job, "error": f"no recording {src} (its plain run failed?)"}
-    out = Path(job["out"])
-    t0 = time.perf_counter()
-    try:
-        rec = load_recording(src)  # made with the same --frames
-        replay(rec, job["config"], job["overrides"], out, None)
-        res = evaluate_run(out, Path(job["gt"]), None, title=job["label"])
-    except Exception as exc:  # noqa: BLE001 - one failing run must not end the table
-        return {**job, "error": f"{type(exc).__name__}: {exc}"}
-    wall = time.perf_counter() - t0
-    metrics = json.loads((out / "metrics.json").read_text())
-    plain = src.parent / "row.json"
-    if plain.is_file():
-        metrics["frames_per_second"] = json.loads(plain.read_text()).get("fps")
-    n = len(rec["stamps"])
-    summary = {"frames": n, "keyframes": int(np.sum(rec["is_kf"])), "stopped_by": None,
-               "eval": res}  # fmt: skip
-    return {**finish_row(job, summary, metrics, wall), "replayed": str(src)}
-
-
-def jobs_for(
-    scene: str, seq, configs, frames, out: Path, ablation: bool, ground_configs=(),
-    replay_ground: bool = True,
-) -> list[dict]:  # fmt: skip
-    base = {"scene": scene, "bag": str(seq.bag), "gt": str(seq.ground_truth), "frames": frames}
-    jobs = []
-
-    def add(label: str, config: str, overrides: list[str], group: str) -> None:
-        safe = label.replace(" ", "_").replace("/", "_")
-        jobs.append({**base, "label": label, "config": config, "overrides": overrides,
-                     "group": group, "out": str(out / scene / safe)})  # fmt: skip
-
-    for name in configs:
-        add(name, name, [], "main")
-    if ablation and FULL in configs:
-        for label, over in ablation_overrides(FULL):
-            add(f"{FULL} {label}", FULL, over, "ablation")
-    ground = ground_factor_overrides() if ground_configs else None
-    if ground is not None:
-        for name in configs:
-            if name in ground_configs:
-                add(f"{name} + ground factor", name, ground, "ground")
-                if replay_ground:  # the plain run records its front end, this replays it
-                    plain = next(j for j in jobs if j["label"] == name)
-                    plain["record"] = str(Path(plain["out"]) / "record.npz")
-                    jobs[-1]["replay_of"] = plain["record"]
-    return jobs
-
-
-# ----------------------------------------------------------------------------- tables
 
 
 def table1(rows: list[dict]) -> str:
@@ -516,7 +216,7 @@ def plan_figure(path: Path) -> Path:
 # ----------------------------------------------------------------------------- main
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["building", "building_loop"])
     ap.add_argument("--configs", nargs="+", default=list(MAIN_CONFIGS))
@@ -550,20 +250,16 @@ def main(argv: list[str] | None = None) -> int:
         help="run the ground-factor rows in full instead of replaying the plain run's "
         "recorded front end",
     )
-    args = ap.parse_args(argv)
-    if args.figures:
-        print(f"figure: {plan_figure(Path(args.figures) / 'building_plan.png')}")
-    if args.plan_only:
-        return 0
+    return ap.parse_args(argv)
 
+
+def build_jobs(args: argparse.Namespace, configs: list[str], out: Path) -> list[dict]:
+    """Every scene's jobs, simulated once each, in the order the tables keep (``index``)
+    sorted for running: main configs, then the ablation, then the ground factor; slowest
+    first."""
     from slam.sim import ensure_sequence, make_scene
     from slam.sim.simulate import effective_model, full_frames
 
-    configs = [c for c in args.configs if available(c)]
-    missing = [c for c in args.configs if c not in configs]
-    if missing:
-        print(f"not installed (left out): {', '.join(missing)}", file=sys.stderr)
-    out = Path(args.out)
     jobs = []
     for scene in args.scenes:
         # The route's first --frames scans (all when the route is shorter), simulated once.
@@ -577,13 +273,17 @@ def main(argv: list[str] | None = None) -> int:
         jobs += jobs_for(scene, seq, configs, args.frames, out, abl, ground, not args.no_replay)
     for i, job in enumerate(jobs):
         job["index"] = i  # the tables keep this order
-    # Main configs first, then the ablation, then the ground factor; slowest first.
     order = {"main": 0, "ablation": 1, "ground": 2}
     jobs.sort(key=lambda j: (order[j["group"]], "improved_floam" not in j["config"]))
     for job in jobs:
         job["reuse"] = args.reuse or args.tabulate_only
         job["tabulate_only"] = args.tabulate_only
-    print(f"{len(jobs)} runs on {args.workers} worker(s)", file=sys.stderr)
+    return jobs
+
+
+def run_jobs(jobs: list[dict], workers: int) -> list[dict]:
+    """The rows of all jobs (the replays after the runs they replay), in ``index`` order."""
+    print(f"{len(jobs)} runs on {workers} worker(s)", file=sys.stderr)
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")
     runs = [j for j in jobs if not j.get("replay_of")]
@@ -596,44 +296,65 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{time.perf_counter() - t0:6.0f} s] {row['scene']} {row['label']}: {status}",
               file=sys.stderr, flush=True)  # fmt: skip
 
-    with ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         for row in pool.map(run_job, runs):
             done(row)
         for row in pool.map(run_job, replays):
             done(row)
     rows.sort(key=lambda r: r["index"])
+    return rows
+
+
+def scene_report(rows: list[dict], scene: str, figures_dir: str | None) -> list[str]:
+    """The tables (and figures) of one scene, as markdown paragraphs."""
+    srows = [r for r in rows if r["scene"] == scene and not r.get("not_run")]
+    not_run = [r["label"] for r in rows if r["scene"] == scene and r.get("not_run")]
+    frames = srows[0]["frames_run"] if srows and "frames_run" in srows[0] else "?"
+    text = [f"## {scene} ({frames} frames)\n"]
+    text.append(
+        "APE (translation, m; SE(3)-aligned, or from the start when the route is straight "
+        "and evo's Umeyama alignment is degenerate), the paper's Table 1:\n"
+    )
+    text.append(table1([r for r in srows if r["group"] == "main"]))
+    for r in srows:  # rows saved before the loop audit existed
+        if "false_loops" not in r and "ape" in r and "out" in r:
+            r.update(loop_columns(Path(r["out"]), Path(r["gt"])))
+    loops = loop_table(srows)
+    if loops:
+        text.append("\nLoop closure (false: constraint > 1 m or 3 deg from the truth):\n")
+        text.append(loops)
+    text.append("\nAblation of LeGO-LOAM-LPB (each module off in turn):\n")
+    text.append(ablation_table(srows))
+    text.append("\nz error (m):\n")
+    text.append(z_table(srows))
+    text.append("\nRuns:\n")
+    text.append(speed_table(srows))
+    if not_run:
+        text.append(f"\nnot run (no saved row): {', '.join(not_run)}\n")
+    if figures_dir:
+        for f in figures(srows, scene, Path(figures_dir)):
+            text.append(f"figure: {f}\n")
+    text.append("\n")
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.figures:
+        print(f"figure: {plan_figure(Path(args.figures) / 'building_plan.png')}")
+    if args.plan_only:
+        return 0
+    configs = [c for c in args.configs if available(c)]
+    missing = [c for c in args.configs if c not in configs]
+    if missing:
+        print(f"not installed (left out): {', '.join(missing)}", file=sys.stderr)
+    out = Path(args.out)
+    rows = run_jobs(build_jobs(args, configs, out), args.workers)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table_lego.json").write_text(json.dumps(rows, indent=2, default=str))
     text = [f"configs left out (not installed): {', '.join(missing) or 'none'}\n"]
     for scene in args.scenes:
-        srows = [r for r in rows if r["scene"] == scene and not r.get("not_run")]
-        not_run = [r["label"] for r in rows if r["scene"] == scene and r.get("not_run")]
-        frames = srows[0]["frames_run"] if srows and "frames_run" in srows[0] else "?"
-        text.append(f"## {scene} ({frames} frames)\n")
-        text.append(
-            "APE (translation, m; SE(3)-aligned, or from the start when the route is straight "
-            "and evo's Umeyama alignment is degenerate), the paper's Table 1:\n"
-        )
-        text.append(table1([r for r in srows if r["group"] == "main"]))
-        for r in srows:  # rows saved before the loop audit existed
-            if "false_loops" not in r and "ape" in r and "out" in r:
-                r.update(loop_columns(Path(r["out"]), Path(r["gt"])))
-        loops = loop_table(srows)
-        if loops:
-            text.append("\nLoop closure (false: constraint > 1 m or 3 deg from the truth):\n")
-            text.append(loops)
-        text.append("\nAblation of LeGO-LOAM-LPB (each module off in turn):\n")
-        text.append(ablation_table(srows))
-        text.append("\nz error (m):\n")
-        text.append(z_table(srows))
-        text.append("\nRuns:\n")
-        text.append(speed_table(srows))
-        if not_run:
-            text.append(f"\nnot run (no saved row): {', '.join(not_run)}\n")
-        if args.figures:
-            for f in figures(srows, scene, Path(args.figures)):
-                text.append(f"figure: {f}\n")
-        text.append("\n")
+        text += scene_report(rows, scene, args.figures)
     report = "\n".join(text)
     (out / "table_lego.md").write_text(report)
     print(report)

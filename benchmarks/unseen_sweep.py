@@ -11,7 +11,7 @@ and the sensor noise; the route and its speeds stay) or the ``street`` scene (a 
 880 m drive at 15 m/s with a 440 m wide avenue of few features and junction stops, made
 for this sweep: ``slam.sim.street``), with one of the simulated sensors (vlp16, hdl32,
 hdl64, os128). ``:strip`` rewrites the bag without ring and time fields (an ``xyzi``
-driver, ``benchmarks/robustness.py rewrite_bag``); ``@N`` its first N frames (default
+driver, ``slam.bench.degrade.rewrite_bag``); ``@N`` its first N frames (default
 ``--frames``). ``kitti``: the 22 real KITTI-raw HDL-64E scans (no ground truth: the step
 error is against small_gicp's scan-to-scan GICP chained); ``pair``: the real HDL-32E scan
 pair against its reference transform (front end only, two frames).
@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import sys
 import tarfile
 import tempfile
 import time
@@ -36,9 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-import robustness as rb  # noqa: E402
+from slam.bench.degrade import rewrite_bag
+from slam.bench.robustness import cell, kitti_reference, pair_case, run_case, step_errors
 
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CONFIGS = ("improved_floam", "floam", "improved_floam_loop", "lego_lpb", "lego_loam")
 CASES = (  # the most telling first: the rows print as they come
     "urban:1:hdl64",
@@ -93,7 +93,7 @@ def ran_away(row: dict) -> str:
 def _run(job: dict) -> dict:
     """One config on one input (fresh process): robustness.py's pipeline run plus where
     the worst step is, the APE max and the frames/s."""
-    row = rb._run(job)
+    row = run_case(job)
     out = Path(job["out"])
     metrics = out / "metrics.json"
     if metrics.exists():
@@ -104,14 +104,14 @@ def _run(job: dict) -> dict:
         from slam.eval.metrics import evaluate
 
         res = evaluate(out / "trajectory.tum", Path(job["gt"]))
-        st = rb.step_errors(res.est_poses, res.gt_poses)
+        st = step_errors(res.est_poses, res.gt_poses)
         row["ape_max"] = res.ape_trans["max"]
         row["step_at"] = int(np.argmax(st)) + 1 if len(st) else None
     return row
 
 
 def _pair(job: dict) -> dict:
-    return rb._pair(job["config"])
+    return pair_case(job["config"], DATA / "scan_pair")
 
 
 def _sim_input(spec: dict, tmp: Path) -> tuple[Path, Path]:
@@ -123,11 +123,8 @@ def _sim_input(spec: dict, tmp: Path) -> tuple[Path, Path]:
     bag, gt = Path(seq.bag), Path(seq.ground_truth)
     if spec["strip"]:
         name = spec["case"].replace(":", "-").replace("@", "-")
-        bag, _ = rb.rewrite_bag(bag, tmp / f"{name}.bag", "strip")
+        bag, _ = rewrite_bag(bag, tmp / f"{name}.bag", "strip")
     return bag, gt
-
-
-_fmt = rb._fmt  # one cell formatter for both robustness tables
 
 
 def table(rows: list[dict]) -> str:
@@ -137,15 +134,15 @@ def table(rows: list[dict]) -> str:
         "|" + "---|" * 9,
     ]
     for r in rows:
-        ape = f"{_fmt(r.get('ape_rmse'))} / {_fmt(r.get('ape_max'))}"
+        ape = f"{cell(r.get('ape_rmse'))} / {cell(r.get('ape_max'))}"
         pct = r.get("ape_pct")
         fps = r.get("fps")
         ratio = r.get("fps_ratio")
         speed = "-" if fps is None else f"{fps:.2f}" + (f" (x{ratio:.2f})" if ratio else "")
         lines.append(
             f"| {r['case']} | {r['config']} | {r.get('frames')} "
-            f"| {_fmt(r.get('rejected'))} / {_fmt(r.get('lost'))} | {ape} | {_fmt(pct, 2)} "
-            f"| {_fmt(r.get('step_err_max'))} @{_fmt(r.get('step_at'))} | {speed} "
+            f"| {cell(r.get('rejected'))} / {cell(r.get('lost'))} | {ape} | {cell(pct, 2)} "
+            f"| {cell(r.get('step_err_max'))} @{cell(r.get('step_at'))} | {speed} "
             f"| {r.get('ran_away') or 'no'} |"
         )
     return "\n".join(lines)
@@ -168,10 +165,10 @@ def main() -> None:
         for spec in specs:
             base = {"case": spec["case"], "overrides": args.overrides}
             if spec["kind"] == "kitti":
-                with tarfile.open(rb.DATA / "kitti_raw_drive" / "data_1.tar.xz", "r:xz") as tar:
+                with tarfile.open(DATA / "kitti_raw_drive" / "data_1.tar.xz", "r:xz") as tar:
                     tar.extractall(tmp / "kitti", filter="data")
                 folder = tmp / "kitti" / "data_1"
-                ref = rb._kitti_reference(folder, tmp / "kitti_ref.npy")
+                ref = kitti_reference(folder, tmp / "kitti_ref.npy")
                 base.update(bag=str(folder), reference=str(ref))
             elif spec["kind"] == "sim":
                 bag, gt = _sim_input(spec, tmp)

@@ -90,7 +90,7 @@ def parse_sets(items: list[str]) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("log", type=Path)
     ap.add_argument("run", type=Path, help="a dpcr2d run folder (odometry.tum, trajectory.tum)")
@@ -100,15 +100,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=None, help="write trajectory.tum + events")
     ap.add_argument("--skip-run-walls", action="store_true")
     ap.add_argument("--gt", type=Path, default=None, help="ground truth (TUM): APE RMSE")
-    args = ap.parse_args(argv)
-    stamps, scans, odom = load_scans(args.log, args.frames)
-    fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps)
-    cfg = VisitGraphConfig(**parse_sets(args.set))
-    t = time.process_time()
-    poses, vg = run_visit_graph(fe, scans, cfg)
-    cpu = time.process_time() - t
+    return ap.parse_args(argv)
+
+
+def summary_row(vg, scans, cpu: float, poses, fe) -> dict:
+    """Counts, timings and wall sharpness of the visit graph and of the front end."""
     acc = [e for e in vg.events if e.accepted]
-    row = {
+    return {
         "scans": len(scans),
         "visits": len(vg.fe),
         "candidates": len(vg.events),
@@ -124,6 +122,54 @@ def main(argv: list[str] | None = None) -> None:
         "front_end": walls(fe, scans),
         "floor_50": walls(fe[:50], scans[:50], every=1)["median"],
     }
+
+
+def add_window_floor(row: dict, fe, scans) -> None:
+    """The front end's wall floor over windows of 50 scans, plain and carved."""
+    floor = windowed_floor(fe[::2], scans[::2], window=50, every=1)
+    carved = windowed_floor(fe[::2], scans[::2], window=50, every=1, carve=True)
+    row["window_floor"] = floor.median
+    row["window_floor_p90"] = floor.p90
+    row["window_floor_carved"] = carved.median
+    row["window_floor_carved_p90"] = carved.p90
+
+
+def add_ape(row: dict, args: argparse.Namespace, stamps, poses, fe) -> None:
+    """APE RMSE of the visit graph, the front end and the run against ``--gt``."""
+    gs, gT = read_trajectory(args.gt)
+    for name, P in [("visit_graph", poses), ("front_end", fe)]:
+        ev = evaluate_arrays(stamps, np.stack([pose2_to_matrix(p) for p in P]), gs, gT)
+        row[f"ape_rmse_{name}"] = ev.ape_trans["rmse"]
+    if (args.run / "trajectory.tum").is_file():
+        row["ape_rmse_run"] = evaluate(args.run / "trajectory.tum", args.gt).ape_trans["rmse"]
+
+
+def write_outputs(out: Path, stamps, poses, vg, row: dict) -> None:
+    """trajectory.tum, loops.csv (every candidate) and summary.json in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "trajectory.tum").open("w") as fh:
+        for s, p in zip(stamps, poses, strict=True):
+            q = [0.0, 0.0, np.sin(p[2] / 2), np.cos(p[2] / 2)]
+            fh.write(f"{s:.6f} {p[0]:.6f} {p[1]:.6f} 0 {q[0]} {q[1]} {q[2]:.9f} {q[3]:.9f}\n")
+    with (out / "loops.csv").open("w") as fh:
+        fh.write("new,old,score,uniqueness,inliers,correction_m,correction_deg,accepted,reason\n")
+        for e in vg.events:
+            row_ = [e.new, e.old, f"{e.score:.3f}", f"{e.uniqueness:.3f}", f"{e.inliers:.3f}",
+                    f"{e.correction_m:.3f}", f"{e.correction_deg:.2f}", int(e.accepted),
+                    e.reason]  # fmt: skip
+            fh.write(",".join(map(str, row_)) + "\n")
+    (out / "summary.json").write_text(json.dumps(row, indent=1))
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    stamps, scans, odom = load_scans(args.log, args.frames)
+    fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps)
+    cfg = VisitGraphConfig(**parse_sets(args.set))
+    t = time.process_time()
+    poses, vg = run_visit_graph(fe, scans, cfg)
+    cpu = time.process_time() - t
+    row = summary_row(vg, scans, cpu, poses, fe)
     # how far each visit lies from the others where they see the same walls (m, its own
     # cloud registered on theirs), at the vertices of each trajectory
     anchors = vertex_scans(len(scans), cfg.visit_scans)
@@ -139,36 +185,12 @@ def main(argv: list[str] | None = None) -> None:
         run_poses = poses_at(args.run / "trajectory.tum", stamps)
         row["run_trajectory"] = walls(run_poses, scans)
         row["run_trajectory"]["offsets"] = offsets(run_poses)
-    floor = windowed_floor(fe[::2], scans[::2], window=50, every=1)
-    carved = windowed_floor(fe[::2], scans[::2], window=50, every=1, carve=True)
-    row["window_floor"] = floor.median
-    row["window_floor_p90"] = floor.p90
-    row["window_floor_carved"] = carved.median
-    row["window_floor_carved_p90"] = carved.p90
+    add_window_floor(row, fe, scans)
     if args.gt is not None:
-        gs, gT = read_trajectory(args.gt)
-        for name, P in [("visit_graph", poses), ("front_end", fe)]:
-            ev = evaluate_arrays(stamps, np.stack([pose2_to_matrix(p) for p in P]), gs, gT)
-            row[f"ape_rmse_{name}"] = ev.ape_trans["rmse"]
-        if (args.run / "trajectory.tum").is_file():
-            row["ape_rmse_run"] = evaluate(args.run / "trajectory.tum", args.gt).ape_trans["rmse"]
+        add_ape(row, args, stamps, poses, fe)
     print(json.dumps(row, indent=1))
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        with (args.out / "trajectory.tum").open("w") as fh:
-            for s, p in zip(stamps, poses, strict=True):
-                q = [0.0, 0.0, np.sin(p[2] / 2), np.cos(p[2] / 2)]
-                fh.write(f"{s:.6f} {p[0]:.6f} {p[1]:.6f} 0 {q[0]} {q[1]} {q[2]:.9f} {q[3]:.9f}\n")
-        with (args.out / "loops.csv").open("w") as fh:
-            fh.write(
-                "new,old,score,uniqueness,inliers,correction_m,correction_deg,accepted,reason\n"
-            )
-            for e in vg.events:
-                row_ = [e.new, e.old, f"{e.score:.3f}", f"{e.uniqueness:.3f}", f"{e.inliers:.3f}",
-                        f"{e.correction_m:.3f}", f"{e.correction_deg:.2f}", int(e.accepted),
-                        e.reason]  # fmt: skip
-                fh.write(",".join(map(str, row_)) + "\n")
-        (args.out / "summary.json").write_text(json.dumps(row, indent=1))
+        write_outputs(args.out, stamps, poses, vg, row)
 
 
 if __name__ == "__main__":

@@ -156,9 +156,8 @@ def test_plot_all_leaves_no_open_figure(res, tmp_path):
 
 
 SCRIPT = """
-import sys, numpy as np, matplotlib
-sys.path.insert(0, {tests!r})
-from test_eval_report import synthetic
+import matplotlib
+from test_eval_report import synthetic  # tests/ on the child's PYTHONPATH
 from slam.eval.plots import plot_all
 files = plot_all(synthetic(0.1, n=40), {out!r})
 print(matplotlib.get_backend(), len(files))
@@ -177,7 +176,8 @@ def test_fresh_interpreter_with_a_gui_backend_in_evo_settings_draws_with_agg(tmp
     (evo_dir / "settings.json").write_text(json.dumps(settings))
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MPLBACKEND")}
     env["HOME"] = str(tmp_path / "home")
-    script = SCRIPT.format(tests=str(Path(__file__).parent), out=str(tmp_path / "out"))
+    env["PYTHONPATH"] = str(Path(__file__).parent)
+    script = SCRIPT.format(out=str(tmp_path / "out"))
     run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                          text=True, timeout=120)  # fmt: skip
     assert run.returncode == 0, run.stderr

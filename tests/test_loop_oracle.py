@@ -1,18 +1,15 @@
-"""benchmarks/loop_oracle.py: the true loops it adds (the bound of a loop closure)."""
+"""slam.bench.oracle (benchmarks/loop_oracle.py): the true loops it adds (the bound of a
+loop closure) and the recorded odometry information loosened anew."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+import json
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from loop_oracle import OracleLoops  # noqa: E402
-
-from slam.io.trajectory import write_tum  # noqa: E402
-from slam.types import Keyframe  # noqa: E402
+from slam.bench.oracle import OracleLoops, reloosen
+from slam.io.trajectory import write_tum
+from slam.types import Keyframe
 
 
 def _pose(x: float, y: float, yaw: float) -> np.ndarray:
@@ -49,10 +46,6 @@ def test_radius_mode_ties_each_revisit_to_its_nearest_old_keyframe(tmp_path):
 
 
 def test_reloosen_redoes_the_front_ends_loosening_with_another_ratio_and_sigma():
-    import json
-
-    from loop_oracle import reloosen
-
     raw = np.stack([np.eye(6) * 1e4] * 4)
     axis = np.array([0.6, 0.8, 0.0])
     extras = [

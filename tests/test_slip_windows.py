@@ -1,18 +1,13 @@
-"""benchmarks/slip_windows.py: the along-track slip per window against a known slip."""
+"""slam.bench.slip (benchmarks/slip_windows.py): the along-track slip per window against a
+known slip."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from slip_windows import along_track, plain_mask, windows  # noqa: E402
-
-from slam.io.trajectory import write_tum  # noqa: E402
-from slam.sim.building import LANES, PLAIN  # noqa: E402
+from slam.bench.slip import along_track, plain_mask, windows
+from slam.io.trajectory import write_tum
+from slam.sim.building import LANES, PLAIN
 
 
 def _path(heading_deg: float, step: np.ndarray) -> np.ndarray:

@@ -1,17 +1,15 @@
-"""benchmarks/table_lego.py: the ground-factor row replays the plain run's front end."""
+"""slam.bench.lego_table (benchmarks/table_lego.py): the ground-factor row replays the plain
+run's front end."""
 
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from loop_replay import load_recording, replay  # noqa: E402
-from table_lego import jobs_for, run_job  # noqa: E402
+from slam.bench.lego_table import jobs_for, run_job
+from slam.bench.loop_replay import load_recording, replay
 
 FRAMES = 60  # the whole short corridor: a few keyframes
 

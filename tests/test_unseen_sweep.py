@@ -2,13 +2,11 @@
 or a step error > 1 m)."""
 
 import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
 
 _DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(_DIR))  # it imports robustness.py beside it
 _spec = importlib.util.spec_from_file_location("unseen_sweep", _DIR / "unseen_sweep.py")
 unseen = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(unseen)

@@ -192,20 +192,15 @@ def _trajectory(stamps: np.ndarray, poses: np.ndarray, name: str) -> PoseTraject
     return PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps, name=name)
 
 
-def evaluate_arrays(
+def _associate(
     est_stamps: np.ndarray | None,
     est_poses: np.ndarray,
     gt_stamps: np.ndarray | None,
     gt_poses: np.ndarray,
-    options: EvalOptions | None = None,
-) -> EvalResult:
-    """Compare (N,4,4) estimate poses with ground truth; stamps in seconds.
-
-    Stamps ``None`` pairs poses by index. Same steps as ``evo_ape``/``evo_rpe``:
-    associate (nearest stamp within ``max_diff``), align the estimate, then APE
-    (translation m, rotation angle deg), RPE (same alignment) and the KITTI drift.
-    """
-    opt = options or EvalOptions()
+    opt: EvalOptions,
+) -> tuple[PoseTrajectory3D, PoseTrajectory3D, PoseTrajectory3D, PoseTrajectory3D]:
+    """(estimate, ground truth, matched ground truth, matched estimate) trajectories: the
+    poses paired by nearest stamp within ``opt.max_diff`` s (by index without stamps)."""
     if est_stamps is None or gt_stamps is None:
         if len(est_poses) != len(gt_poses):
             raise InputError("without stamps, estimate and ground truth need equal pose counts")
@@ -219,11 +214,20 @@ def evaluate_arrays(
     except EvoException as exc:
         raise InputError(f"cannot associate estimate with ground truth: {exc}") from exc
     n = traj_est.num_poses
-    notes: list[str] = []
     if n < 3 and opt.align in ("se3", "sim3"):
         raise InputError(f"only {n} poses matched within {opt.max_diff} s; alignment needs 3")
-    est_indices = np.searchsorted(traj_est_full.timestamps, traj_est.timestamps)
+    return traj_est_full, traj_gt_full, traj_gt, traj_est
 
+
+def _align(
+    traj_est: PoseTrajectory3D,
+    traj_gt: PoseTrajectory3D,
+    traj_est_full: PoseTrajectory3D,
+    opt: EvalOptions,
+    notes: list[str],
+) -> tuple[np.ndarray, float]:
+    """Align the matched estimate to the truth in place (``opt.align``), the whole
+    estimate with the same transform; (alignment 4x4, scale)."""
     alignment = np.eye(4)
     scale = 1.0
     try:
@@ -246,14 +250,12 @@ def evaluate_arrays(
             notes.append(f"{opt.align} alignment impossible ({exc}); aligned the first poses")
         except EvoException as exc2:
             raise InputError(f"alignment failed (degenerate trajectory?): {exc2}") from exc
+    return alignment, scale
 
-    data = (traj_gt, traj_est)
-    ape_t = metrics.APE(metrics.PoseRelation.translation_part)
-    ape_t.process_data(data)
-    ape_r = metrics.APE(metrics.PoseRelation.rotation_angle_deg)
-    ape_r.process_data(data)
 
-    rpe_trans = rpe_rot = None
+def _rpe(data: tuple, opt: EvalOptions, notes: list[str]) -> tuple[dict | None, dict | None]:
+    """RPE statistics (translation m, rotation deg) over ``opt.rpe_delta`` ``opt.rpe_unit``;
+    (None, None) with a note when evo cannot compute them."""
     unit = metrics.Unit.meters if opt.rpe_unit == "m" else metrics.Unit.frames
     delta = float(opt.rpe_delta) if opt.rpe_unit == "m" else int(opt.rpe_delta)
     try:
@@ -261,21 +263,57 @@ def evaluate_arrays(
         rpe_t.process_data(data)
         rpe_r = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta, unit)
         rpe_r.process_data(data)
-        rpe_trans, rpe_rot = _stats(rpe_t), _stats(rpe_r)
+        return _stats(rpe_t), _stats(rpe_r)
     except EvoException as exc:
         notes.append(f"RPE not computed: {exc}")
+        return None, None
 
+
+def _kitti(gt_arr: np.ndarray, est_arr: np.ndarray, opt: EvalOptions, notes: list[str]):
+    """KITTI drift of the matched poses; over scaled segments when the path is shorter
+    than the KITTI lengths (noted); None for fewer than 2 poses."""
+    if len(est_arr) < 2:
+        return None
+    kitti = kitti_metric(gt_arr, est_arr, lengths=opt.kitti_lengths, step=opt.kitti_step)
+    if kitti["segments"] == 0 and kitti["path_length"] > 0:
+        kitti = kitti_metric_scaled(gt_arr, est_arr, step=opt.kitti_step)
+        notes.append(
+            f"path {kitti['path_length']:.1f} m is shorter than the KITTI segments; "
+            f"KITTI drift over scaled segments {kitti['lengths']} m"
+        )
+    return kitti
+
+
+def evaluate_arrays(
+    est_stamps: np.ndarray | None,
+    est_poses: np.ndarray,
+    gt_stamps: np.ndarray | None,
+    gt_poses: np.ndarray,
+    options: EvalOptions | None = None,
+) -> EvalResult:
+    """Compare (N,4,4) estimate poses with ground truth; stamps in seconds.
+
+    Stamps ``None`` pairs poses by index. Same steps as ``evo_ape``/``evo_rpe``:
+    associate (nearest stamp within ``max_diff``), align the estimate, then APE
+    (translation m, rotation angle deg), RPE (same alignment) and the KITTI drift.
+    """
+    opt = options or EvalOptions()
+    traj_est_full, traj_gt_full, traj_gt, traj_est = _associate(
+        est_stamps, est_poses, gt_stamps, gt_poses, opt
+    )
+    n = traj_est.num_poses
+    notes: list[str] = []
+    est_indices = np.searchsorted(traj_est_full.timestamps, traj_est.timestamps)
+    alignment, scale = _align(traj_est, traj_gt, traj_est_full, opt, notes)
+    data = (traj_gt, traj_est)
+    ape_t = metrics.APE(metrics.PoseRelation.translation_part)
+    ape_t.process_data(data)
+    ape_r = metrics.APE(metrics.PoseRelation.rotation_angle_deg)
+    ape_r.process_data(data)
+    rpe_trans, rpe_rot = _rpe(data, opt, notes)
     gt_arr = np.array(traj_gt.poses_se3)
     est_arr = np.array(traj_est.poses_se3)
-    kitti = None
-    if n >= 2:
-        kitti = kitti_metric(gt_arr, est_arr, lengths=opt.kitti_lengths, step=opt.kitti_step)
-        if kitti["segments"] == 0 and kitti["path_length"] > 0:
-            kitti = kitti_metric_scaled(gt_arr, est_arr, step=opt.kitti_step)
-            notes.append(
-                f"path {kitti['path_length']:.1f} m is shorter than the KITTI segments; "
-                f"KITTI drift over scaled segments {kitti['lengths']} m"
-            )
+    kitti = _kitti(gt_arr, est_arr, opt, notes)
     return EvalResult(
         ape_trans=_stats(ape_t),
         ape_rot=_stats(ape_r),
