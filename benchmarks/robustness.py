@@ -46,19 +46,14 @@ import tarfile
 import tempfile
 from pathlib import Path
 
-# true_stamps and the measures: tests/test_robustness.py reads them from this script
-from slam.bench.degrade import VARIANTS, rewrite_bag, true_stamps, truncate_bag  # noqa: F401
-from slam.bench.robustness import (  # noqa: F401
+from slam.bench.degrade import VARIANTS, rewrite_bag, truncate_bag
+from slam.bench.robustness import (
     URBAN_SENSORS,
     cell,
     kitti_reference,
     pair_case,
     run_case,
     sequence_of,
-    step_errors,
-    stop_drift,
-    stops,
-    verdict,
 )
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

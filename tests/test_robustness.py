@@ -1,21 +1,15 @@
-"""The measures of benchmarks/robustness.py: stops found in the ground truth, the drift over
-them, the ran-away rule, and the degraded bags it writes (no ring/time, jittered stamps,
-dropped messages) read back as intended."""
+"""The measures of benchmarks/robustness.py (in slam.bench): stops found in the ground
+truth, the drift over them, the ran-away rule, and the degraded bags it writes (no
+ring/time, jittered stamps, dropped messages) read back as intended."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from slam.bench import degrade, robustness
 from slam.io.source import open_source
 from slam.types import Scan
-
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "robustness.py"
-_spec = importlib.util.spec_from_file_location("robustness", _PATH)
-robustness = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(robustness)
 
 
 def _drive(speeds: np.ndarray) -> np.ndarray:
@@ -59,16 +53,16 @@ def test_ran_away_rule():
 def test_degraded_bags(tmp_path, corridor_short):
     clean = [s for s in open_source(corridor_short.bag) if isinstance(s, Scan)]
     true = np.array([s.stamp for s in clean])
-    bag, stamp_map = robustness.rewrite_bag(corridor_short.bag, tmp_path / "strip.bag", "strip")
+    bag, stamp_map = degrade.rewrite_bag(corridor_short.bag, tmp_path / "strip.bag", "strip")
     strip = [s for s in open_source(bag) if isinstance(s, Scan)]
     assert len(strip) == len(clean) and all(s.ring is None and s.time is None for s in strip)
     assert np.abs(strip[5].xyz - clean[5].xyz).max() < 1e-5
-    bag, stamp_map = robustness.rewrite_bag(corridor_short.bag, tmp_path / "jit.bag", "jitter")
+    bag, stamp_map = degrade.rewrite_bag(corridor_short.bag, tmp_path / "jit.bag", "jitter")
     jit = np.array([s.stamp for s in open_source(bag) if isinstance(s, Scan)])
     pairs = np.load(stamp_map)
     assert np.allclose(pairs[:, 1], true) and np.allclose(pairs[:, 0], jit, atol=1e-6)
     assert 0.01 < np.abs(jit - true).max() <= 0.02 + 1e-6
-    bag, stamp_map = robustness.rewrite_bag(corridor_short.bag, tmp_path / "drop.bag", "drop5")
+    bag, stamp_map = degrade.rewrite_bag(corridor_short.bag, tmp_path / "drop.bag", "drop5")
     drop = np.array([s.stamp for s in open_source(bag) if isinstance(s, Scan)])
     assert len(drop) == len(clean) - len(clean) // 5
     assert np.allclose(drop, np.delete(true, np.arange(4, len(true), 5)), atol=1e-6)
@@ -91,13 +85,13 @@ def test_swapped_and_reversed_stamps_keep_every_frame(tmp_path, corridor_short, 
 
     assert _run(corridor_short.bag, tmp_path / "clean") == 0
     s0, t0 = read_tum(tmp_path / "clean" / "trajectory.tum")
-    bag, _ = robustness.rewrite_bag(corridor_short.bag, tmp_path / "swap.bag", "swap")
+    bag, _ = degrade.rewrite_bag(corridor_short.bag, tmp_path / "swap.bag", "swap")
     assert _run(bag, tmp_path / "swap") == 0
     s1, t1 = read_tum(tmp_path / "swap" / "trajectory.tum")
     np.testing.assert_array_equal(s1, s0)
     assert np.abs(t1[:, :3, 3] - t0[:, :3, 3]).max() < 1e-3
     capsys.readouterr()
-    bag, stamp_map = robustness.rewrite_bag(corridor_short.bag, tmp_path / "rev.bag", "reversed")
+    bag, stamp_map = degrade.rewrite_bag(corridor_short.bag, tmp_path / "rev.bag", "reversed")
     assert _run(bag, tmp_path / "rev") == 0
     err = capsys.readouterr().err
     warned = [r for r in caplog.records if r.levelname == "WARNING" and "backwards" in r.message]
@@ -106,7 +100,7 @@ def test_swapped_and_reversed_stamps_keep_every_frame(tmp_path, corridor_short, 
     pairs = np.load(stamp_map)
     assert len(s2) == 30 and np.allclose(s2, pairs[:30, 2], atol=1e-6)  # the record time
     assert np.abs(t2[:, :3, 3] - t0[:, :3, 3]).max() < 0.01
-    write_tum(tmp_path / "rev_true.tum", robustness.true_stamps(pairs, s2), t2)
+    write_tum(tmp_path / "rev_true.tum", degrade.true_stamps(pairs, s2), t2)
     ape_clean = evaluate(tmp_path / "clean" / "trajectory.tum", corridor_short.ground_truth)
     ape_rev = evaluate(tmp_path / "rev_true.tum", corridor_short.ground_truth)
     assert ape_rev.ape_trans["rmse"] < 1.1 * ape_clean.ape_trans["rmse"] + 0.005
@@ -126,7 +120,7 @@ def test_stamp_and_start_up_variants(tmp_path, corridor_short):
     n = len(clean)
 
     def read(variant):
-        bag, stamp_map = robustness.rewrite_bag(
+        bag, stamp_map = degrade.rewrite_bag(
             corridor_short.bag, tmp_path / f"{variant}.bag", variant
         )
         return [s for s in open_source(bag)], np.load(stamp_map)
@@ -157,7 +151,7 @@ def test_a_bag_cut_short_gives_every_frame_before_the_cut(tmp_path, corridor_sho
     from slam.cli import main
     from slam.io.trajectory import read_tum
 
-    bag = robustness.truncate_bag(corridor_short.bag, tmp_path / "cut.bag", keep=0.6)
+    bag = degrade.truncate_bag(corridor_short.bag, tmp_path / "cut.bag", keep=0.6)
     assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "is cut short: read error at its end" in err and "Traceback" not in err
@@ -175,9 +169,9 @@ def test_true_stamps_follow_the_clock_the_run_used():
     header[20:] -= 2.55  # the clock stepped back
     record = true + 0.05
     stamp_map = np.column_stack([header, true, record])
-    np.testing.assert_allclose(robustness.true_stamps(stamp_map, header[:20]), true[:20])
-    np.testing.assert_allclose(robustness.true_stamps(stamp_map, record[5:]), true[5:])
+    np.testing.assert_allclose(degrade.true_stamps(stamp_map, header[:20]), true[:20])
+    np.testing.assert_allclose(degrade.true_stamps(stamp_map, record[5:]), true[5:])
     followed = true + 1e-7  # the run followed the step: back on the true clock
-    np.testing.assert_allclose(robustness.true_stamps(stamp_map, followed), true)
+    np.testing.assert_allclose(degrade.true_stamps(stamp_map, followed), true)
     jittered = np.column_stack([true + 0.013 * np.sin(np.arange(40)), true, record])
-    np.testing.assert_allclose(robustness.true_stamps(jittered, jittered[:, 0]), true)
+    np.testing.assert_allclose(degrade.true_stamps(jittered, jittered[:, 0]), true)
