@@ -573,7 +573,3 @@ def main(argv: list[str] | None = None) -> int:
     except SlamError as exc:
         _eprint(f"error: {exc}")
         return EXIT_FAIL
-
-
-if __name__ == "__main__":
-    sys.exit(main())
