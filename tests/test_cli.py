@@ -216,7 +216,7 @@ def test_compare_table_and_no_loop_reproduces_odometry(corridor_short, tmp_path,
 
 
 def test_stop_codes_say_why_a_run_ended_early():
-    from slam.cli import _stop_code
+    from slam.cli.common import stop_code as _stop_code
     from slam.state import Stop, StopReason
 
     assert _stop_code({"stop": None, "out": "o"}) == 0

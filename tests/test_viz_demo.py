@@ -10,7 +10,8 @@ import re
 import numpy as np
 import pytest
 
-from slam.cli import DEMO_FRAMES, DEMO_SCENE, build_parser, main
+from slam.cli import build_parser, main
+from slam.cli.demo import DEMO_FRAMES, DEMO_SCENE
 from slam.eval.metrics import evaluate
 
 pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py

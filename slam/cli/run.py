@@ -1,0 +1,104 @@
+"""``slam run``: one recipe on one input, with a summary of what came out."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from slam.cli.common import (
+    add_run_options,
+    apply_source_args,
+    default_out_dir,
+    eprint,
+    gt_path,
+    stop_code,
+)
+
+
+def add_parser(sub: Any) -> None:
+    q = sub.add_parser("run", help="run SLAM on a bag / KITTI folder / PCD folder")
+    q.add_argument("bag")
+    q.add_argument("--config", default=None, help="config name in configs/ or a YAML path")
+    q.add_argument("--no-loop", action="store_true", help="switch loop closure off")
+    q.add_argument("--gt", help="ground truth (TUM) to evaluate against")
+    q.add_argument(
+        "--viz",
+        nargs="?",
+        const="",
+        metavar="FILE.rrd",
+        help="live view in the Rerun viewer (pip install 'pyslam-graph[viz]'); "
+        "with FILE.rrd: record the same stream to a file (no display needed)",
+    )
+    add_run_options(q)
+    q.set_defaults(func=cmd_run)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from slam.config import load_config
+    from slam.run import disable_loops, run_one
+
+    config = load_config(args.config, args.set)
+    apply_source_args(config, args)
+    if args.no_loop:
+        disable_loops(config)
+    out = Path(args.out) if args.out else default_out_dir(config.name)
+    observers = []
+    if args.viz is not None:  # "" (bare --viz): a viewer on this display; else an .rrd file
+        from slam.viz.rerun_view import viz_observer
+
+        observers.append(viz_observer(args.viz))
+    try:
+        summary = run_one(
+            Path(args.bag),
+            config,
+            out,
+            topic=args.topic,
+            gt=gt_path(args.gt),
+            quiet=args.quiet,
+            observers=observers,
+        )
+    finally:
+        for obs in observers:
+            obs.close()
+    print_run_summary(summary)
+    if args.viz:
+        eprint(f"live view recorded to {args.viz} (open it with: rerun {args.viz})")
+    return stop_code(summary)
+
+
+def print_run_summary(summary: dict[str, Any]) -> None:
+    """Frames, loops, speed, memory, input notes, skipped messages, tracking and APE."""
+    out = summary["out"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    fps = metrics.get("frames_per_second")
+    eprint(
+        f"{summary['frames']} frames, {summary['keyframes']} keyframes, "
+        f"{metrics.get('loops_closed', 0)} loop factors, {fps} frames/s, "
+        f"peak memory {metrics.get('peak_memory_mb')} MiB"
+    )
+    if metrics.get("sensor"):
+        eprint(f"sensor: {metrics['sensor']}")
+    for note in summary.get("input_notes") or []:
+        eprint(f"note: {note}")
+    skipped = summary.get("skipped_messages") or {}
+    if skipped:
+        eprint(
+            f"skipped {sum(skipped.values())} input messages: "
+            + ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items()))
+        )
+    counts = metrics.get("frontend_counts") or {}
+    if counts.get("tracking_lost") or counts.get("rejected"):
+        eprint(
+            f"tracking: {counts.get('rejected', 0)} implausible registrations rejected, "
+            f"{counts.get('tracking_lost', 0)} frames lost (prediction kept, not mapped), "
+            f"{counts.get('recovered', 0)} recoveries"
+        )
+    if "eval" in summary:
+        ape = summary["eval"].ape_trans
+        eprint(
+            "APE translation [m]: "
+            + "  ".join(f"{k} {ape[k]:.4f}" for k in ("rmse", "mean", "median", "max") if k in ape)
+        )
+    eprint(f"outputs written to {out}/")
