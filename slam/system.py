@@ -43,8 +43,8 @@ def keyframe_cloud(cloud: np.ndarray | None) -> np.ndarray:
 
 
 def scalar_extras(extras: dict[str, Any]) -> dict[str, Any]:
-    """The front end's per-frame diagnostics a keyframe keeps: scalars only (numbers, bools,
-    strings), never arrays or private ``_`` entries (they would hold scans in memory)."""
+    """The scalars (numbers, bools, strings) of a flat dict such as ``Odometry.extras``,
+    without arrays or private ``_`` entries; for scripts (keyframes keep typed fields)."""
     keep = (bool, int, float, str, np.generic)
     return {k: v for k, v in extras.items() if isinstance(v, keep) and not k.startswith("_")}
 
@@ -99,9 +99,7 @@ class SlamSystem:
         with self.timer.frame():
             with self.timer("frontend"):
                 odom = self.frontend.process(scan)
-            st.skipped_frames += bool(odom.extras.get("skipped"))
-            st.degenerate_frames += bool(odom.extras.get("degenerate"))
-            st.add_diagnostics(odom.extras)
+            st.add_diagnostics(odom)
             if odom.is_keyframe or not st.keyframes:
                 self._add_keyframe(scan, odom)
             self._record_frame(scan, odom)
@@ -137,7 +135,10 @@ class SlamSystem:
             relative=np.asarray(odom.relative, dtype=float),
             info=np.asarray(odom.info, dtype=float),
             cloud=keyframe_cloud(odom.cloud),
-            extras=scalar_extras(odom.extras),
+            status=odom.status,
+            diagnostics=odom.diagnostics,
+            ground_plane=None if odom.ground_plane is None else np.array(odom.ground_plane),
+            region=odom.region,
         )
         with self.timer.measure() as guess:  # back-end time too
             initial_T = kf.pose_odom if kf.id == 0 else self._estimate(kf.id - 1) @ kf.relative
