@@ -26,7 +26,7 @@ import numpy as np
 
 from frontends.dpcr2d_config import Dpcr2dConfig
 from frontends.dpcr2d_maps import Region, fuse_visits
-from frontends.dpcr2d_steps import check_wheels, revisit_match
+from frontends.dpcr2d_steps import check_wheels, old_maps, revisit_match
 from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
     OccupancyGrid,
@@ -256,22 +256,6 @@ class Dpcr2d:
         self._rebuild_submap()
         self._refresh_submap_lines()
 
-    def _old_maps(self) -> list[Region]:
-        """The maps of the regions near the robot (centres within ``revisit_radius``) that
-        it left ``revisit_path`` m ago or more, nearest first (at most ``revisit_regions``):
-        what a revisit should land on. The maps it drew since, in its current (maybe
-        drifted) frame, are left out."""
-        cfg = self.cfg
-        near = []
-        for region_id, region in self.regions.items():
-            if region.left_at is None or self.path - region.left_at < cfg.revisit_path:
-                continue
-            centre = transform2d(region.offset, self.division.centre(region_id)[None])[0]
-            d = float(np.linalg.norm(centre - self.pose[:2]))
-            if d <= cfg.revisit_radius:
-                near.append((d, region_id))
-        return [self.regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
-
     def _reanchor(self, maps: list[Region], counts: dict) -> bool:
         """Wide search of the submap on the old maps around the robot (see
         ``revisit_search``); True when the robot and the submap moved onto them."""
@@ -416,7 +400,7 @@ class Dpcr2d:
         reanchored = False
         periodic = cfg.revisit_every > 0 and self.frame % cfg.revisit_every == 0
         if (entered or periodic) and cfg.revisit_search and cfg.second_registration:
-            maps = self._old_maps()
+            maps = old_maps(self.regions, self.division, self.path, self.pose, cfg)
             if maps:
                 reanchored = self._reanchor(maps, diag.counts)
                 timings["revisit_ms"] = (time.perf_counter() - t) * 1e3

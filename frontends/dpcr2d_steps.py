@@ -1,6 +1,6 @@
 """Registration steps of the DPCR-SLAM front end (``frontends.dpcr2d``) as pure functions:
 the check of a first registration against the wheel odometry, and the revisit search of
-the submap on the old regional maps."""
+the submap on the old regional maps (and which maps are old)."""
 
 from __future__ import annotations
 
@@ -44,6 +44,24 @@ def check_wheels(
         counts["wheel_kept"] = 1
         return near
     return res
+
+
+def old_maps(
+    regions: dict[int, Region], division, path: float, pose: np.ndarray, cfg
+) -> list[Region]:
+    """The maps of the regions near the robot at ``pose`` (centres within
+    ``revisit_radius``) that it left ``revisit_path`` m ago or more (``path``: m travelled
+    so far), nearest first (at most ``revisit_regions``): what a revisit should land on.
+    The maps it drew since, in its current (maybe drifted) frame, are left out."""
+    near = []
+    for region_id, region in regions.items():
+        if region.left_at is None or path - region.left_at < cfg.revisit_path:
+            continue
+        centre = transform2d(region.offset, division.centre(region_id)[None])[0]
+        d = float(np.linalg.norm(centre - pose[:2]))
+        if d <= cfg.revisit_radius:
+            near.append((d, region_id))
+    return [regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
 
 
 def revisit_match(

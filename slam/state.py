@@ -133,7 +133,7 @@ class RunState:
         are not averaged)."""
         d = odom.diagnostics
         if d is not None:
-            self.skipped_frames += d.skipped is not None and bool(d.skipped)
+            self.skipped_frames += bool(d.skipped)
             self.degenerate_frames += bool(d.degenerate)
         for k, v in odom.flat().items():
             if (

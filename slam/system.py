@@ -80,6 +80,7 @@ class SlamSystem:
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._backend_failed = False  # an update failed: the run stops, outputs are written
+        self._untyped_warned = False  # a front end of an earlier version was named once
 
     def _estimate(self, kf_id: int) -> np.ndarray:
         """The graph view's pose of a keyframe: the initial guess of the one being added."""
@@ -99,6 +100,8 @@ class SlamSystem:
         with self.timer.frame():
             with self.timer("frontend"):
                 odom = self.frontend.process(scan)
+            if odom.diagnostics is None and odom.extras and not self._untyped_warned:
+                self._warn_untyped()
             st.add_diagnostics(odom)
             if odom.is_keyframe or not st.keyframes:
                 self._add_keyframe(scan, odom)
@@ -109,6 +112,15 @@ class SlamSystem:
         if st.frames == MEMORY_REFERENCE_FRAME:
             st.memory_reference = (peak_memory_mb(), st.path_length)
         return odom
+
+    def _warn_untyped(self) -> None:
+        """One warning for a front end that reports its diagnostics only in the untyped
+        ``Odometry.extras`` of earlier versions (the system no longer reads them)."""
+        self._untyped_warned = True
+        log.warning("front end %s returns Odometry.extras but no Odometry.diagnostics: its "
+                    "skipped/degenerate flags and counts are not in metrics.json; fill "
+                    "diagnostics (slam.types.FrameDiagnostics) and status instead",
+                    type(self.frontend).__name__)  # fmt: skip
 
     def _record_frame(self, scan: Scan, odom: Odometry) -> None:
         """The frame's stamp, odometry and pose relative to its keyframe."""

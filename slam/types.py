@@ -9,7 +9,7 @@ Information matrices are 6x6 in GTSAM's tangent ordering: rotation first
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from enum import Enum
 from typing import Any
 
@@ -295,6 +295,7 @@ class Keyframe:
     relative: np.ndarray
     info: np.ndarray
     cloud: np.ndarray
+    _: KW_ONLY  # by name: the untyped extras of earlier versions took this place
     status: TrackingStatus | None = None
     diagnostics: FrameDiagnostics | None = None
     ground_plane: np.ndarray | None = None
