@@ -11,7 +11,7 @@ trajectory consistent when the robot comes back.
 
 The workspace is divided into regions of width S (eqs. (3)-(5), ``slam.mapping.grid2d``).
 A keyframe is emitted whenever the robot enters another region: its cloud is the obstacle
-map of the region just left (in the keyframe's frame), and its extras name the regions,
+map of the region just left (in the keyframe's frame), and its ``RegionTag`` names the regions,
 so that the region-graph factor plugin (``slam.region_graph``) can link regional maps.
 Poses are planar: z = 0, roll = pitch = 0.
 """
@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 
 from frontends.dpcr2d_config import Dpcr2dConfig
 from frontends.dpcr2d_maps import Region, fuse_visits
-from frontends.dpcr2d_steps import check_wheels, revisit_match
+from frontends.dpcr2d_steps import check_wheels, old_maps, revisit_match
 from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
     OccupancyGrid,
@@ -42,7 +43,7 @@ from slam.mapping.grid2d import (
 )
 from slam.registration.correlative2d import correlative_search
 from slam.registration.plicp import LineReference, PlicpResult, plicp
-from slam.types import Odometry, Scan
+from slam.types import FrameDiagnostics, Odometry, RegionAnchor, RegionTag, Scan, TrackingStatus
 
 __all__ = ["Dpcr2d", "Dpcr2dConfig", "matrix_to_pose2", "pose2_to_matrix"]
 
@@ -99,6 +100,8 @@ class Dpcr2d:
         # probabilistic map.pgm (visit_grid with free space)
         self.visit_scans: list[list[tuple[np.ndarray, np.ndarray]]] = []
         self._visit_scan_bytes = 0
+        self._lost = False  # the last registered frame was rejected
+        self._anchor: RegionAnchor | None = None  # this frame's re-anchor, if any
 
     # ------------------------------------------------------------------ storage
     def storage_bytes(self) -> dict[str, int]:
@@ -253,37 +256,21 @@ class Dpcr2d:
         self._rebuild_submap()
         self._refresh_submap_lines()
 
-    def _old_maps(self) -> list[Region]:
-        """The maps of the regions near the robot (centres within ``revisit_radius``) that
-        it left ``revisit_path`` m ago or more, nearest first (at most ``revisit_regions``):
-        what a revisit should land on. The maps it drew since, in its current (maybe
-        drifted) frame, are left out."""
-        cfg = self.cfg
-        near = []
-        for region_id, region in self.regions.items():
-            if region.left_at is None or self.path - region.left_at < cfg.revisit_path:
-                continue
-            centre = transform2d(region.offset, self.division.centre(region_id)[None])[0]
-            d = float(np.linalg.norm(centre - self.pose[:2]))
-            if d <= cfg.revisit_radius:
-                near.append((d, region_id))
-        return [self.regions[i] for _, i in sorted(near)[: cfg.revisit_regions]]
-
-    def _reanchor(self, maps: list[Region], extras: dict) -> bool:
+    def _reanchor(self, maps: list[Region], counts: dict) -> bool:
         """Wide search of the submap on the old maps around the robot (see
         ``revisit_search``); True when the robot and the submap moved onto them."""
         cfg = self.cfg
         target = self.submap.obstacle_points()
         if len(target) < cfg.min_points:
             return False
-        pose = revisit_match(target, maps, cfg, extras)
-        if "revisit_score" in extras:
+        searched, pose = revisit_match(target, maps, cfg, counts)
+        if searched:
             self.counts["revisit_searches"] += 1
         if pose is None:
             return False
         res_pose = pose
         self.counts["reanchored"] += 1
-        extras.update(reanchored=1, reanchor_m=float(np.linalg.norm(res_pose[:2])),
+        counts.update(reanchored=1, reanchor_m=float(np.linalg.norm(res_pose[:2])),
                       reanchor_deg=float(np.degrees(res_pose[2])))  # fmt: skip
         self._move(res_pose)
         if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
@@ -292,8 +279,7 @@ class Dpcr2d:
             self.feedback = compose2d(res_pose, self.feedback)
             placed = compose2d(maps[0].offset, self.kf_map[maps[0].owner])
             z = compose2d(inverse2d(placed), self.pose)
-            extras.update(anchor_kf=maps[0].owner, anchor_x=float(z[0]), anchor_y=float(z[1]),
-                          anchor_theta=float(z[2]))  # fmt: skip
+            self._anchor = RegionAnchor(maps[0].owner, (float(z[0]), float(z[1]), float(z[2])))
         return True
 
     def _visit_clouds(self) -> bool:
@@ -339,9 +325,12 @@ class Dpcr2d:
         return np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
 
     # ------------------------------------------------------------------ contract
-    def _track(self, scan: Scan, pts: np.ndarray, timings: dict, extras: dict) -> np.ndarray:
+    def _track(
+        self, scan: Scan, pts: np.ndarray, diag: FrameDiagnostics
+    ) -> tuple[np.ndarray, TrackingStatus]:
         """The first registration: the scan on the submap's lines from the prediction
-        (wheel odometry or constant velocity), the prediction kept when implausible."""
+        (wheel odometry or constant velocity), the prediction kept when implausible (LOST)
+        or when the scan is not registered (PREDICTED; the first scan starts the map)."""
         cfg = self.cfg
         odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
         use = cfg.use_odometry
@@ -353,10 +342,11 @@ class Dpcr2d:
         from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
         self._odom = odom
         if len(pts) < cfg.min_points:
-            extras["skipped"] = f"too few points ({len(pts)})"
-            return predicted
+            diag.skipped = f"too few points ({len(pts)})"
+            return predicted, TrackingStatus.PREDICTED
         if not (cfg.first_registration and self.submap_ref is not None and len(self.submap_ref)):
-            return predicted
+            first = self.frame == 0  # the first scan starts the map
+            return predicted, TrackingStatus.TRACKED if first else TrackingStatus.PREDICTED
         t = time.perf_counter()
         prior = {}
         if from_wheels and cfg.odometry_prior:
@@ -366,17 +356,18 @@ class Dpcr2d:
             start = correlative_search(self.submap_ref.points, pts, predicted, cfg.start).pose
         res = plicp(pts, self.submap_ref, start, cfg.plicp, **prior)
         if from_wheels and self._plausible(res, predicted):
-            res = check_wheels(pts, self.submap_ref, predicted, res, prior, cfg, extras)
-            self.counts["wheel_kept"] += int(extras.get("wheel_kept", 0))
-        timings["first_ms"] = (time.perf_counter() - t) * 1e3
-        extras.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
+            kept = check_wheels(pts, self.submap_ref, predicted, res, prior, cfg, diag.counts)
+            self.counts["wheel_kept"] += int(kept is not res)
+            res = kept
+        diag.timings_ms["first_ms"] = (time.perf_counter() - t) * 1e3
+        diag.counts.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
         if not self._plausible(res, predicted):
             self.counts["rejected"] += 1
-            extras["rejected"] = 1
-            return predicted
+            diag.rejected = True
+            return predicted, TrackingStatus.LOST
         if from_wheels:
             self._learn_odometry_noise(predicted, res.pose)
-        return res.pose
+        return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
 
     def _add_to_submap(self, pts: np.ndarray) -> None:
         """The scan joins the sliding submap (the oldest leaves it); lines refreshed every K1."""
@@ -393,12 +384,12 @@ class Dpcr2d:
             self._refresh_submap_lines()
 
     def _regions_step(
-        self, pts: np.ndarray, previous: np.ndarray, timings: dict, extras: dict
+        self, pts: np.ndarray, previous: np.ndarray, diag: FrameDiagnostics
     ) -> tuple[bool, int, int | None, bool]:
         """Which region the robot is in (the revisit search on entering one), the
         regional map fused, the second registration; returns (keyframe?, region, the
         region left, entered another region?)."""
-        cfg = self.cfg
+        cfg, timings = self.cfg, diag.timings_ms
         self.path += float(np.linalg.norm(self.pose[:2] - previous[:2]))
         region = int(self.division.region_of(self.pose[:2][None])[0])
         entered = region != self.region
@@ -409,9 +400,9 @@ class Dpcr2d:
         reanchored = False
         periodic = cfg.revisit_every > 0 and self.frame % cfg.revisit_every == 0
         if (entered or periodic) and cfg.revisit_search and cfg.second_registration:
-            maps = self._old_maps()
+            maps = old_maps(self.regions, self.division, self.path, self.pose, cfg)
             if maps:
-                reanchored = self._reanchor(maps, extras)
+                reanchored = self._reanchor(maps, diag.counts)
                 timings["revisit_ms"] = (time.perf_counter() - t) * 1e3
             if reanchored:  # the region the corrected pose is in
                 region = int(self.division.region_of(self.pose[:2][None])[0])
@@ -420,7 +411,7 @@ class Dpcr2d:
         if cfg.visit_scans > 0:
             is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0
         else:
-            is_kf = self.frame == 0 or entered or "anchor_kf" in extras
+            is_kf = self.frame == 0 or entered or self._anchor is not None
         if is_kf:
             self.kf_id += 1
         if len(pts) >= cfg.min_points:
@@ -431,10 +422,9 @@ class Dpcr2d:
             self._second_registration(timings)
         return is_kf, region, left, entered
 
-    def _region_cloud(self, left: int | None, extras: dict, region: int) -> np.ndarray | None:
+    def _region_cloud(self, left: int | None) -> np.ndarray | None:
         """A region keyframe's cloud: the map of the region just left (or the visit with
         ``visit_clouds``) in the keyframe's frame; None without a region event."""
-        extras.update(region=region, region_left=-1 if left is None else left)
         cloud = None
         if left is not None and left in self.regions:
             if self._visit_clouds():
@@ -450,31 +440,38 @@ class Dpcr2d:
 
     def process(self, scan: Scan) -> Odometry:
         t0 = time.perf_counter()
-        timings: dict = {}
-        extras: dict = {}
+        diag = FrameDiagnostics()
+        timings = diag.timings_ms
+        self._anchor = None
         pts = self._points(scan)
-        pose = self._track(scan, pts, timings, extras)
+        pose, status = self._track(scan, pts, diag)
+        if status is not TrackingStatus.PREDICTED:  # lost until a registration is trusted
+            self._lost = status is TrackingStatus.LOST
         previous, self.pose = self.pose, pose
         t = time.perf_counter()
         self._add_to_submap(pts)
         timings["submap_ms"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
-        is_kf, region, left, entered = self._regions_step(pts, previous, timings, extras)
+        is_kf, region, left, entered = self._regions_step(pts, previous, diag)
         timings["region_ms"] = (time.perf_counter() - t) * 1e3
 
         reported = compose2d(inverse2d(self.feedback), self.pose)
         T = pose2_to_matrix(reported)
         relative = np.linalg.inv(pose2_to_matrix(self.pose_kf)) @ T
-        cloud = None
+        cloud, tag = None, None
         visits = self.cfg.visit_scans > 0
         if visits:
             self._recent.append((pts, reported))
             self._since_kf += 1
         if is_kf and visits:
             cloud = self._visit_cloud(reported)
-            extras.update(region=region, region_left=-1, visit=1)
+            tag = RegionTag(region, -1, visit=True)
         elif is_kf:  # a re-anchor inside a region: no region event
-            cloud = self._region_cloud(left if entered else None, extras, region)
+            left = left if entered else None
+            cloud = self._region_cloud(left)
+            tag = RegionTag(region, -1 if left is None else left)
+        if self._anchor is not None:
+            tag = replace(tag or RegionTag(), anchor=self._anchor)
         if is_kf:
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
@@ -482,8 +479,7 @@ class Dpcr2d:
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1
         timings["total_ms"] = (time.perf_counter() - t0) * 1e3
-        extras.update(timings)
-        extras.update(regions=len(self.regions), **self.storage_bytes())
+        diag.counts.update(regions=len(self.regions), **self.storage_bytes())
         return Odometry(
             stamp=scan.stamp,
             pose=T,
@@ -491,5 +487,7 @@ class Dpcr2d:
             relative=relative,
             info=self._info_scale * planar_information(relative),
             cloud=cloud,
-            extras=extras,
+            status=status,
+            diagnostics=diag,
+            region=tag,
         )

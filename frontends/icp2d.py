@@ -33,7 +33,7 @@ from slam.mapping.grid2d import (
     wrap,
 )
 from slam.registration.correlative2d import CorrelativeConfig, correlative_search
-from slam.types import Odometry, Scan
+from slam.types import FrameDiagnostics, Odometry, Scan, TrackingStatus
 
 
 @dataclass
@@ -195,6 +195,7 @@ class Icp2d:
         self.keyframe_bytes = 0
         self.counts = {"rejected": 0}
         self._odom: np.ndarray | None = None
+        self._lost = False  # the last registered frame was rejected
 
     def storage_bytes(self) -> dict[str, int]:
         """Bytes of the stored map: the submap's points and the keyframe clouds the pose
@@ -225,7 +226,7 @@ class Icp2d:
     def process(self, scan: Scan) -> Odometry:
         cfg = self.cfg
         t0 = time.perf_counter()
-        extras: dict = {}
+        diag = FrameDiagnostics()
         pts = self._points(scan)
         odom = None if scan.odom is None else np.asarray(scan.odom, dtype=np.float64)
         use = cfg.use_odometry
@@ -236,23 +237,25 @@ class Icp2d:
         )
         self._odom = odom
         pose = predicted
+        status = TrackingStatus.TRACKED if self.frame == 0 else TrackingStatus.PREDICTED
         if len(pts) < cfg.min_points:
-            extras["skipped"] = 1
+            diag.skipped = f"too few points ({len(pts)} < {cfg.min_points})"
+            status = TrackingStatus.PREDICTED
         elif self.window:
             t = time.perf_counter()
             ref = np.concatenate(list(self.window))
             res = icp2d(pts, ref, self._start(ref, pts, predicted, odom is None or not use), cfg)
-            extras.update(
-                icp_ms=(time.perf_counter() - t) * 1e3,
-                rmse=res.rmse,
-                matches=res.matches,
-                iterations=res.iterations,
-            )
+            diag.timings_ms["icp_ms"] = (time.perf_counter() - t) * 1e3
+            diag.counts.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
             if self._plausible(res, predicted):
                 pose = res.pose
+                status = TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
+                self._lost = False
             else:
                 self.counts["rejected"] += 1
-                extras["rejected"] = 1
+                diag.rejected = True
+                status = TrackingStatus.LOST
+                self._lost = True
         previous = self.pose
         self.pose = pose
         if len(pts) >= cfg.min_points:
@@ -270,8 +273,8 @@ class Icp2d:
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1
-        extras["total_ms"] = (time.perf_counter() - t0) * 1e3
-        extras.update(self.storage_bytes())
+        diag.timings_ms["total_ms"] = (time.perf_counter() - t0) * 1e3
+        diag.counts.update(self.storage_bytes())
         return Odometry(
             stamp=scan.stamp,
             pose=T,
@@ -279,5 +282,6 @@ class Icp2d:
             relative=relative,
             info=planar_information(relative),
             cloud=cloud,
-            extras=extras,
+            status=status,
+            diagnostics=diag,
         )

@@ -13,9 +13,9 @@ of what leaves the window, no rebuild of the whole map).
 Every block has ``enabled`` in the config (``outliers``, ``ground``, ``dynamics``,
 ``map``; ``registration.ground_weight: 0`` drops the ground residual), so the paper's
 ablation is a config change. The fitted plane (sensor frame) is published as
-``Odometry.ground_plane`` = [nx, ny, nz, d] (n.x + d = 0, d = sensor height, m), and for
-the ground factor in ``Odometry.extras["ground_plane"]`` and as the scalars ``ground_nx``,
-``ground_ny``, ``ground_nz``, ``ground_d`` (keyframes keep scalar extras only).
+``Odometry.ground_plane`` = [nx, ny, nz, d] (n.x + d = 0, d = sensor height, m), which
+keyframes keep for the ground factor; its numbers (``ground_nx`` ... ``ground_d``,
+``ground_rmse``) are in the frame's diagnostic counts.
 """
 
 from __future__ import annotations

@@ -122,8 +122,9 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check/convert one value against a type hint; raise ConfigError naming ``where``."""
+def _coerce(value: Any, tp: Any, where: str, base: Any = None) -> Any:
+    """Check/convert one value against a type hint; raise ConfigError naming ``where``.
+    base: the value a mapping for a dataclass completes (its fields not in the mapping)."""
     origin = typing.get_origin(tp)
     if tp is Any:
         return value
@@ -136,7 +137,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             if arg is type(None):
                 continue
             try:
-                return _coerce(value, arg, where)
+                return _coerce(value, arg, where, base)
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
@@ -145,7 +146,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return value
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        return build_dataclass(tp, value, where)
+        return build_dataclass(tp, value, where, base if isinstance(base, tp) else None)
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
@@ -208,9 +209,23 @@ def upgrade_keys(cls: type, data: dict[str, Any], where: str) -> dict[str, Any]:
     return out
 
 
-def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config") -> Any:
+def _field_default(f: dataclasses.Field) -> Any:
+    """A field's default value (a fresh one from its default_factory), None without one."""
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None if f.default is dataclasses.MISSING else f.default
+
+
+def build_dataclass(
+    cls: type, data: dict[str, Any] | None, where: str = "config", base: Any = None
+) -> Any:
     """Instantiate dataclass ``cls`` from ``data``, rejecting unknown keys with the valid list
-    (moved keys of ``cls.deprecated_keys`` are upgraded first, with a warning)."""
+    (moved keys of ``cls.deprecated_keys`` are upgraded first, with a warning).
+
+    The fields ``data`` does not give keep the values of ``base`` (a ``cls`` instance:
+    the default its parent section gives it), else ``cls``'s defaults; a nested section
+    given in part overrides only its given fields of that default, at any depth.
+    """
     data = upgrade_keys(cls, dict(data or {}), where)
     hints = typing.get_type_hints(cls)
     valid = [f.name for f in dataclasses.fields(cls) if f.init]
@@ -221,9 +236,15 @@ def build_dataclass(cls: type, data: dict[str, Any] | None, where: str = "config
             + ", ".join(f"'{where}.{k}'" for k in unknown)
             + f"; valid keys of '{where}': {', '.join(valid)}"
         )
-    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for k, v in data.items():
+        default = None
+        if isinstance(v, dict):  # a section: completed from the parent's default for it
+            default = getattr(base, k) if base is not None else _field_default(fields[k])
+        kwargs[k] = _coerce(v, hints[k], f"{where}.{k}", default)
     try:
-        return cls(**kwargs)
+        return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from exc
 

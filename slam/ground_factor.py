@@ -23,10 +23,8 @@ slopes are followed. A keyframe whose plane disagrees beyond the gates (a ramp b
 kerb) adds nothing and anchors a new segment. mode "global": every keyframe sees the first
 keyframe's ground (a PriorFactorPose3): one flat floor, as in the paper's building.
 
-The plane comes from the front end when it provides one in the keyframe's extras: the
-scalars ``ground_nx, ground_ny, ground_nz, ground_d`` (the pipeline keeps scalar extras
-only), or ``ground_plane`` (a GroundPlane, a (normal, d) pair, {"normal", "d"} or
-[a, b, c, d]); else from fit_ground(kf.cloud).
+The plane comes from the front end when it provides one (``Keyframe.ground_plane``,
+[nx, ny, nz, d]); else from fit_ground(kf.cloud).
 """
 
 from __future__ import annotations
@@ -43,7 +41,6 @@ from slam.preprocess.ground import GroundPlane, RansacGroundConfig, fit_ground
 from slam.types import Keyframe
 
 GROUND_MODES = ("chain", "global")
-GROUND_EXTRAS = ("ground_nx", "ground_ny", "ground_nz", "ground_d")  # scalar extras form
 _FREE_SIGMA = 1e3  # x, y, yaw: left to the other factors (rad / m)
 
 
@@ -197,12 +194,8 @@ class GroundFactorPlugin:
     def plane(self, kf: Keyframe) -> tuple[np.ndarray, float] | None:
         """The keyframe's ground (n, d) in its sensor frame, or None (counted in skipped)."""
         self._roughness = 1.0
-        extras = kf.extras or {}
-        given = extras.get("ground_plane")
-        if given is None and all(k in extras for k in GROUND_EXTRAS):
-            given = [extras[k] for k in GROUND_EXTRAS]
-        if given is not None:
-            return plane_of(given)
+        if kf.ground_plane is not None:
+            return plane_of(kf.ground_plane)
         cloud = np.asarray(kf.cloud, dtype=np.float64)
         if cloud.ndim != 2 or len(cloud) < self.config.min_inliers:
             self._skip("no cloud")

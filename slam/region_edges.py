@@ -3,7 +3,7 @@ the region graph (plugin name ``region_edges``).
 
 The ``dpcr2d`` front end makes a keyframe each time the robot enters another region; its
 cloud is the obstacle map of the region just left, in that keyframe's frame, and its
-extras name that region (``region_left``). For each new such keyframe this plugin looks
+``RegionTag`` names that region (``left``). For each new such keyframe this plugin looks
 at the earlier ones whose regions' centres lie within ``S * alpha`` (eq. (10), RegDis),
 registers the two regional maps with the improved PLICP (starting from the current
 estimate), and adds an edge when their MatchRate, eq. (11):
@@ -42,7 +42,7 @@ from slam.mapping.grid2d import (
 )
 from slam.registration.correlative2d import CorrelativeConfig, correlative_search
 from slam.registration.plicp import LineReference, PlicpConfig, PlicpResult, plicp
-from slam.types import Keyframe
+from slam.types import Keyframe, RegionTag
 from slam.visit_graph import VisitGraphConfig, VisitLoops, loop_sigmas
 
 CSV_COLUMNS = ("source", "target", "region_source", "region_target", "match_rate", "rmse",
@@ -63,11 +63,11 @@ class RegionEdgeConfig(FactorConfig):
     accepted when its second peak / best <= ``wide_max_uniqueness`` and its correction
     of the odometry is within ``wide_gate_m`` + gate_fraction * path and
     ``wide_gate_deg``; anchor_sigma_m / anchor_sigma_deg: the noise of a front end's
-    re-anchor (its keyframe's ``anchor_kf`` / ``anchor_x`` / ``anchor_y`` /
-    ``anchor_theta`` extras: its pose on the map of that earlier keyframe), an edge too.
+    re-anchor (its keyframe's ``RegionTag.anchor``: its pose on the map of that earlier
+    keyframe), an edge too.
     visits: the loop search of the visit graph (``slam.visit_graph``), used for the
-    keyframes a front end marks as visits (``dpcr2d`` with ``visit_scans``: extras
-    ``visit``) instead of the region pairs."""
+    keyframes a front end marks as visits (``dpcr2d`` with ``visit_scans``:
+    ``RegionTag.visit``) instead of the region pairs."""
 
     region_width: float = 4.0
     alpha: float = 1.5
@@ -153,10 +153,11 @@ class RegionEdgePlugin:
         if kf.id > 0:
             step = float(np.linalg.norm(np.asarray(kf.relative)[:2, 3]))
             self._path.append(self._path[-1] + step)
-        if kf.extras.get("visit"):
+        tag = kf.region or RegionTag()
+        if tag.visit:
             return self._visit(kf, graph)
         anchors = self._anchor(kf)
-        region = int(kf.extras.get("region_left", -1))
+        region = tag.left
         cloud = graph.cloud(kf.id)
         if region < 0 or len(cloud) < 20:
             return anchors
@@ -249,15 +250,15 @@ class RegionEdgePlugin:
         """The edge of a front-end re-anchor (``dpcr2d``: the submap matched, by the wide
         search, on the old maps): keyframe ``anchor_kf`` -> this one."""
         cfg = self.config
-        j = int(kf.extras.get("anchor_kf", -1))
-        if not 0 <= j < kf.id:
+        anchor = None if kf.region is None else kf.region.anchor
+        if anchor is None or not 0 <= anchor.keyframe < kf.id:
             return []
-        z = np.array([kf.extras["anchor_x"], kf.extras["anchor_y"], kf.extras["anchor_theta"]])
+        j, z = anchor.keyframe, np.array(anchor.pose)
         s_t, s_r = cfg.anchor_sigma_m, np.radians(cfg.anchor_sigma_deg)
         info = np.diag([1e6, 1e6, 1.0 / s_r**2, 1.0 / s_t**2, 1.0 / s_t**2, 1e6])
         noise = robust_noise(gtsam.noiseModel.Gaussian.Information(info), cfg.robust,
                              cfg.robust_param)  # fmt: skip
-        region = int(kf.extras.get("region", -1))
+        region = -1 if kf.region.region is None else kf.region.region
         self.events.append(RegionEdge(kf.id, j, region, -1, 1.0, 0.0, True, "ok (re-anchor)"))
         return [gtsam.BetweenFactorPose3(key(j), key(kf.id), pose3(pose2_to_matrix(z)), noise)]
 

@@ -8,13 +8,12 @@ from array import array
 from collections import defaultdict
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
 
 import numpy as np
 
 from slam.io.stream import StreamStats
 from slam.timing import StageTimer
-from slam.types import Keyframe
+from slam.types import Keyframe, Odometry
 
 MEMORY_REFERENCE_FRAME = 100  # frames after which the map, models and kernels are warm
 
@@ -128,9 +127,15 @@ class RunState:
     def stage_frame_cpu_seconds(self) -> dict[str, array]:
         return self.timer.stage_frame_cpu_seconds
 
-    def add_diagnostics(self, extras: dict[str, Any]) -> None:
-        """Accumulate a frame's numeric front-end diagnostics (counts, *_ms timings)."""
-        for k, v in extras.items():
+    def add_diagnostics(self, odom: Odometry) -> None:
+        """Count and accumulate a frame's typed front-end diagnostics: skipped and
+        degenerate frames, and the numbers of ``odom.flat()`` (counts, *_ms timings; bools
+        are not averaged)."""
+        d = odom.diagnostics
+        if d is not None:
+            self.skipped_frames += bool(d.skipped)
+            self.degenerate_frames += bool(d.degenerate)
+        for k, v in odom.flat().items():
             if (
                 isinstance(v, (int, float, np.integer, np.floating))
                 and not isinstance(v, bool)

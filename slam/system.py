@@ -43,8 +43,8 @@ def keyframe_cloud(cloud: np.ndarray | None) -> np.ndarray:
 
 
 def scalar_extras(extras: dict[str, Any]) -> dict[str, Any]:
-    """The front end's per-frame diagnostics a keyframe keeps: scalars only (numbers, bools,
-    strings), never arrays or private ``_`` entries (they would hold scans in memory)."""
+    """The scalars (numbers, bools, strings) of a flat dict such as ``Odometry.extras``,
+    without arrays or private ``_`` entries; for scripts (keyframes keep typed fields)."""
     keep = (bool, int, float, str, np.generic)
     return {k: v for k, v in extras.items() if isinstance(v, keep) and not k.startswith("_")}
 
@@ -80,6 +80,7 @@ class SlamSystem:
         self._estimate_cache: dict[int, np.ndarray] = {}  # cleared on every back-end update
         self._pending: tuple[int, np.ndarray] | None = None  # new keyframe: initial guess
         self._backend_failed = False  # an update failed: the run stops, outputs are written
+        self._untyped_warned = False  # a front end of an earlier version was named once
 
     def _estimate(self, kf_id: int) -> np.ndarray:
         """The graph view's pose of a keyframe: the initial guess of the one being added."""
@@ -99,9 +100,9 @@ class SlamSystem:
         with self.timer.frame():
             with self.timer("frontend"):
                 odom = self.frontend.process(scan)
-            st.skipped_frames += bool(odom.extras.get("skipped"))
-            st.degenerate_frames += bool(odom.extras.get("degenerate"))
-            st.add_diagnostics(odom.extras)
+            if odom.diagnostics is None and odom.extras and not self._untyped_warned:
+                self._warn_untyped()
+            st.add_diagnostics(odom)
             if odom.is_keyframe or not st.keyframes:
                 self._add_keyframe(scan, odom)
             self._record_frame(scan, odom)
@@ -111,6 +112,15 @@ class SlamSystem:
         if st.frames == MEMORY_REFERENCE_FRAME:
             st.memory_reference = (peak_memory_mb(), st.path_length)
         return odom
+
+    def _warn_untyped(self) -> None:
+        """One warning for a front end that reports its diagnostics only in the untyped
+        ``Odometry.extras`` of earlier versions (the system no longer reads them)."""
+        self._untyped_warned = True
+        log.warning("front end %s returns Odometry.extras but no Odometry.diagnostics: its "
+                    "skipped/degenerate flags and counts are not in metrics.json; fill "
+                    "diagnostics (slam.types.FrameDiagnostics) and status instead",
+                    type(self.frontend).__name__)  # fmt: skip
 
     def _record_frame(self, scan: Scan, odom: Odometry) -> None:
         """The frame's stamp, odometry and pose relative to its keyframe."""
@@ -137,7 +147,10 @@ class SlamSystem:
             relative=np.asarray(odom.relative, dtype=float),
             info=np.asarray(odom.info, dtype=float),
             cloud=keyframe_cloud(odom.cloud),
-            extras=scalar_extras(odom.extras),
+            status=odom.status,
+            diagnostics=odom.diagnostics,
+            ground_plane=None if odom.ground_plane is None else np.array(odom.ground_plane),
+            region=odom.region,
         )
         with self.timer.measure() as guess:  # back-end time too
             initial_T = kf.pose_odom if kf.id == 0 else self._estimate(kf.id - 1) @ kf.relative

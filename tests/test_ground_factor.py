@@ -53,7 +53,7 @@ def _cloud(T_ws, rng, n=2500):
     return (world - T_ws[:3, 3]) @ T_ws[:3, :3]
 
 
-def _keyframes(truth, pitch_bias_deg=0.02, seed=1, with_clouds=True, extras=False):
+def _keyframes(truth, pitch_bias_deg=0.02, seed=1, with_clouds=True, planes=False):
     """Odometry with a pitch bias per keyframe (a front end that climbs) and small noise."""
     rng = np.random.default_rng(seed)
     kfs, T_odom = [], truth[0].copy()
@@ -67,12 +67,13 @@ def _keyframes(truth, pitch_bias_deg=0.02, seed=1, with_clouds=True, extras=Fals
             )
             rel = rel @ err
             T_odom = T_odom @ rel
-        ex = {}
-        if extras:  # the plane a front end would report: n = R^T z, d = height
-            n = T[:3, :3].T @ np.array([0, 0, 1.0])
-            ex = {"ground_nx": n[0], "ground_ny": n[1], "ground_nz": n[2], "ground_d": T[2, 3]}
+        plane = None
+        if planes:  # the plane a front end would report: n = R^T z, d = height
+            plane = np.r_[T[:3, :3].T @ np.array([0, 0, 1.0]), T[2, 3]]
         cloud = _cloud(T, rng) if with_clouds else np.zeros((0, 3), np.float32)
-        kfs.append(Keyframe(i, 0.1 * i, i, T_odom.copy(), rel, np.eye(6), cloud, ex))
+        kfs.append(
+            Keyframe(i, 0.1 * i, i, T_odom.copy(), rel, np.eye(6), cloud, ground_plane=plane)
+        )
     return kfs
 
 
@@ -137,7 +138,7 @@ def test_chain_mode_cuts_z_drift_of_a_pitch_biased_chain():
 
 def test_global_mode_from_front_end_planes():
     truth = _truth(seed=2)
-    kfs = _keyframes(truth, pitch_bias_deg=-0.03, with_clouds=False, extras=True)
+    kfs = _keyframes(truth, pitch_bias_deg=-0.03, with_clouds=False, planes=True)
     z_odo, _ = _errors(_optimise(kfs, _base_plugins()), truth)
     ground = GroundFactorPlugin(GroundFactorConfig(mode="global"))
     z_gnd, _ = _errors(_optimise(kfs, _base_plugins() + [ground]), truth)
@@ -148,9 +149,9 @@ def test_global_mode_from_front_end_planes():
 
 def test_gate_rejects_a_slope_change_and_missing_ground_is_skipped():
     truth = _truth(n=4)
-    kfs = _keyframes(truth, with_clouds=False, extras=True)
-    kfs[2].extras["ground_nx"], kfs[2].extras["ground_nz"] = np.sin(0.2), np.cos(0.2)  # a ramp
-    kfs[3].extras = {}
+    kfs = _keyframes(truth, with_clouds=False, planes=True)
+    kfs[2].ground_plane[0], kfs[2].ground_plane[2] = np.sin(0.2), np.cos(0.2)  # a ramp
+    kfs[3].ground_plane = None
     kfs[3].cloud = np.zeros((0, 3), np.float32)
     plugin = GroundFactorPlugin()
     view = GraphView(kfs, lambda i: kfs[i].pose_odom)

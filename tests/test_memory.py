@@ -14,7 +14,7 @@ from slam.config import SlamConfig
 from slam.io.maps import VoxelCentroidMap, voxel_centroids, write_points
 from slam.outputs import build_map, write_outputs
 from slam.pipeline import Pipeline, keyframe_cloud, resolved_config, scalar_extras
-from slam.types import Odometry, Scan
+from slam.types import FrameDiagnostics, Odometry, Scan, TrackingStatus
 
 
 def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
@@ -27,7 +27,7 @@ def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
 
 class CloudFrontend:
     """Moves 1 m per frame (every frame a keyframe) and returns a float32 cloud of a
-    10 x 10 x 2 m box around the sensor, plus a large private array in extras."""
+    10 x 10 x 2 m box around the sensor, its diagnostics and a ground plane."""
 
     def __init__(self, n_points: int = 2000, dtype=np.float32, step: float = 1.0):
         self.n_points, self.dtype, self.step = n_points, dtype, step
@@ -42,10 +42,10 @@ class CloudFrontend:
         rel = (
             np.eye(4) if i == 0 else np.linalg.solve(_pose(self.step * (i - 1), 0.01 * (i - 1)), T)
         )
-        extras = {"n_points": self.n_points, "fitness": 0.01, "lost": "no", "degenerate": False}
-        extras["_filtered_xyz"] = np.zeros((50000, 3))
-        extras["residuals"] = np.zeros(1000)
-        return Odometry(scan.stamp, T, True, rel, np.eye(6) * 1e4, cloud, extras)
+        diag = FrameDiagnostics(counts={"n_points": self.n_points, "fitness": 0.01})
+        odom = Odometry(scan.stamp, T, True, rel, np.eye(6) * 1e4, cloud, diagnostics=diag)
+        odom.status, odom.ground_plane = TrackingStatus.TRACKED, np.array([0.0, 0, 1, 1.7])
+        return odom
 
 
 def _scans(n: int):
@@ -67,8 +67,9 @@ def test_keyframe_cloud_is_the_front_ends_float32_array_shared_read_only():
         assert np.shares_memory(kf.cloud, given)  # stored once: no copy
         assert not kf.cloud.flags.writeable
         assert pipe.view.cloud(kf.id) is kf.cloud  # plugins read the same array
-        # no arrays of the front end's extras are kept (``_filtered_xyz`` was a scan)
-        assert set(kf.extras) == {"n_points", "fitness", "lost", "degenerate"}
+        # the typed fields of the frame, the plane a copy (nothing of the front end's held)
+        assert kf.diagnostics.counts == {"n_points": 2000, "fitness": 0.01}
+        assert kf.status is TrackingStatus.TRACKED and kf.ground_plane.tolist() == [0, 0, 1, 1.7]
     with pytest.raises(ValueError):
         pipe.state.keyframes[0].cloud[0, 0] = 1.0
 

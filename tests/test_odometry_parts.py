@@ -147,7 +147,12 @@ def test_legacy_extras_keeps_the_flat_keys():
     assert ex["rejected"] == 1 and type(ex["rejected"]) is int and ex["lost"] == "why"
     assert ex["tracking_lost"] == 0 and ex["degenerate"] is False and ex["n_edges"] == 3
     assert ex["iterations"] == 4 and ex["inliers"] == 90 and ex["ground_plane"][3] == 1.7
-    assert list(ex)[-1] == "total_ms" and "skipped" not in ex
+    assert ex["total_ms"] == 1.0 and "skipped" not in ex and "ambiguity_ms" not in ex
+    # the numbers of the flat view are the typed diagnostics' own (what a run averages)
+    assert {k: v for k, v in ex.items() if k != "ground_plane"} == d.flat()
+    d.ambiguity, d.ambiguity_axis = 0.5, (1.0, 0.0)
+    ex = legacy_extras(d, None, np.eye(6), ambiguity_ms=2.5)
+    assert d.ambiguity_ms == 2.5 == ex["ambiguity_ms"] and ex["_info_before_ambiguity"][0, 0] == 1
 
 
 def test_a_start_hypothesis_replaces_the_prediction_only_when_it_explains_more():

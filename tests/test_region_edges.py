@@ -19,7 +19,7 @@ from slam.mapping.grid2d import (
 )
 from slam.region_edges import RegionEdgeConfig, RegionEdgePlugin
 from slam.sim.floorplan2d import simulate2d
-from slam.types import Keyframe
+from slam.types import Keyframe, RegionTag
 
 
 def _keyframes(drift: np.ndarray):
@@ -44,7 +44,7 @@ def _keyframes(drift: np.ndarray):
         cloud = np.column_stack([local, np.zeros(len(local))]).astype(np.float32)
         relative = np.eye(4) if i == 0 else np.linalg.solve(kfs[0].pose_odom, pose2_to_matrix(pose))
         kfs.append(Keyframe(i, float(i), at, pose2_to_matrix(pose), relative, np.eye(6), cloud,
-                            {"region_left": 7}))  # fmt: skip
+                            region=RegionTag(region=8 + i, left=7)))  # fmt: skip
     return kfs, compose2d(inverse2d(seq.poses[30]), seq.poses[40])
 
 

@@ -126,7 +126,7 @@ def test_dpcr2d_visit_keyframes_carry_the_visit_clouds(rooms):
     for a in kf:
         lo = max(0, prev + 1 - 5) if a else 0
         want = visit_cloud(poses[lo : a + 1], scans[lo : a + 1], poses[a], 0.05)
-        assert out[a].extras["visit"] == 1 and out[a].cloud.shape == (len(want), 3)
+        assert out[a].region.visit and out[a].cloud.shape == (len(want), 3)
         assert np.allclose(out[a].cloud[:, :2], want, atol=1e-5)
         prev = a
     # the plugin on these keyframes: visit loop search, no region pairs
@@ -136,7 +136,7 @@ def test_dpcr2d_visit_keyframes_carry_the_visit_clouds(rooms):
         o = out[a]
         keyframes.append(
             Keyframe(
-                i, o.stamp, a, o.pose, o.relative, o.info, keyframe_cloud(o.cloud), o.extras
+                i, o.stamp, a, o.pose, o.relative, o.info, keyframe_cloud(o.cloud), region=o.region
             )  # fmt: skip
         )
         view = GraphView(keyframes, lambda j: keyframes[j].pose_odom)

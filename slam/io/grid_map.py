@@ -68,7 +68,7 @@ def region_corrections(pipeline) -> dict[int, np.ndarray]:
         corr = compose2d(
             matrix_to_pose2(st.estimates[kf.id]), inverse2d(matrix_to_pose2(kf.pose_odom))
         )
-        region = int(kf.extras.get("region_left", -1))
+        region = -1 if kf.region is None else kf.region.left
         if region >= 0:
             out[region] = corr
         last = corr
