@@ -21,7 +21,7 @@ import numpy as np
 from slam import plugins
 from slam.bench.loop_audit import audit, summary
 from slam.config import load_config
-from slam.types import Odometry, Scan
+from slam.types import FrameDiagnostics, Odometry, Scan
 
 
 class Recorder:
@@ -112,7 +112,24 @@ class ReplayFrontend:
         return Odometry(
             float(r["stamps"][i]), r["poses"][i], bool(r["is_kf"][i]), r["relative"][i],
             r["info"][i], self.cloud.get(i), dict(self.extras[i]),
+            diagnostics=_diagnostics(self.extras[i]),
         )  # fmt: skip
+
+
+def _diagnostics(flat: dict[str, Any]) -> FrameDiagnostics:
+    """The recorded flat scalars as typed diagnostics (the run averages their counts)."""
+    numbers = {
+        k: float(v)
+        for k, v in flat.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "rejected"
+    }
+    return FrameDiagnostics(
+        rejected=bool(flat.get("rejected", False)),
+        skipped=flat.get("skipped") if isinstance(flat.get("skipped"), str) else None,
+        degenerate=bool(flat.get("degenerate", False)),
+        counts={k: v for k, v in numbers.items() if not k.endswith("_ms")},
+        timings_ms={k: v for k, v in numbers.items() if k.endswith("_ms")},
+    )
 
 
 def load_recording(path: Path) -> dict[str, Any]:

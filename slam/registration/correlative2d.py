@@ -19,7 +19,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
-from scipy.signal import fftconvolve
 
 from slam.errors import ConfigError, InputError
 from slam.mapping.grid2d import transform2d
@@ -117,6 +116,8 @@ def _shift_scores(
         window[r0 - rows.start : r1 - rows.start, c0 - cols.start : c1 - cols.start] = field[
             r0:r1, c0:c1
         ]
+    from scipy.signal import fftconvolve  # here: scipy.signal costs ~1 s of every start
+
     corr = fftconvolve(window, img[::-1, ::-1], mode="valid")  # (2k+1, 2k+1)
     return corr / len(cells)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from scipy.signal import find_peaks
 
 from slam.errors import InputError
 from slam.sensor.beam_model import BeamModel
@@ -31,6 +30,8 @@ def _histogram_beams(elev: np.ndarray) -> np.ndarray:
     edges = np.arange(lo, hi + HIST_BIN_DEG, HIST_BIN_DEG)
     h, _ = np.histogram(elev, bins=edges)
     hs = gaussian_filter1d(h.astype(np.float64), HIST_SMOOTH_DEG / HIST_BIN_DEG)
+    from scipy.signal import find_peaks  # here: scipy.signal costs ~1 s of every start
+
     peaks, props = find_peaks(
         hs, distance=max(int(MIN_BEAM_GAP_DEG / HIST_BIN_DEG), 1), prominence=1e-9
     )
