@@ -6,7 +6,7 @@ import importlib
 from importlib.metadata import entry_points
 from typing import Any
 
-from slam.config import build_dataclass
+from slam.dataclass_build import build_dataclass
 from slam.errors import PluginError
 
 GROUPS = ("slam.frontends", "slam.backends", "slam.factors")

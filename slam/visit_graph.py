@@ -30,8 +30,8 @@ from dataclasses import dataclass, field, replace
 import gtsam
 import numpy as np
 
+from slam.cell_lines import line_reference
 from slam.errors import ConfigError
-from slam.features.lines2d import LineConfig, extract_lines
 from slam.graph2d_gate import optimize_gated
 from slam.mapping.grid2d import (
     GridConfig,
@@ -43,6 +43,7 @@ from slam.mapping.grid2d import (
 )
 from slam.registration.correlative2d import CorrelativeConfig, correlative_search
 from slam.registration.plicp import LineReference, PlicpConfig, plicp
+from slam.visit_refine import refine_visits
 
 
 @dataclass
@@ -255,21 +256,6 @@ class VisitLoops:
         return event(inl, res.pose, True, "ok"), res.pose
 
 
-def line_reference(pts: np.ndarray, resolution: float) -> tuple[LineReference | None, np.ndarray]:
-    """Lines of a cloud's cell means (``resolution``) as a PLICP reference (None when too
-    small), and for each of its points (one per cell) the index of a point of ``pts`` in
-    that cell."""
-    if len(pts) < 20:
-        return None, np.zeros(0, dtype=np.int64)
-    cells = np.floor(pts / resolution).astype(np.int64)
-    _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
-    count = np.bincount(inverse)
-    mean = np.column_stack([np.bincount(inverse, pts[:, d]) / count for d in range(2)])
-    lines = extract_lines(mean, resolution, LineConfig(), count.astype(float))
-    return LineReference.from_lines(lines), first
-
-
 def odometry_sigmas(cfg: VisitGraphConfig, rel: np.ndarray) -> np.ndarray:
     """(sigma_x, sigma_y, sigma_theta) of the front end's relative pose ``rel`` between
     two visits."""
@@ -369,8 +355,6 @@ class VisitGraph:
         if self.loops:
             self._optimize()
         if self.cfg.refine_rounds:
-            from slam.visit_refine import refine_visits
-
             self.refine_stats = refine_visits(self)
 
     def estimates(self) -> np.ndarray:

@@ -6,13 +6,17 @@ turned into edges and re-optimised for a few rounds (``refine_visits``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
+from slam.cell_lines import line_reference
 from slam.mapping.grid2d import compose2d, inverse2d, transform2d
 from slam.registration.plicp import plicp
-from slam.visit_graph import VisitGraph, VisitGraphConfig, line_reference
+
+if TYPE_CHECKING:  # the visit graph calls this module; it is a type here only
+    from slam.visit_graph import VisitGraph, VisitGraphConfig
 
 
 @dataclass
