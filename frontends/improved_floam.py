@@ -11,15 +11,16 @@ from enum import Enum
 
 import numpy as np
 
+from frontends.improved_floam_filter import Filtered, ScanFilter
 from slam.deferred import Deferred, numba_threads
 from slam.errors import ConfigError
 from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
-from slam.preprocess.column_stride import thin_scan
-from slam.preprocess.sor import Neighbourhoods, SorConfig, apply_sor, neighbourhoods
+from slam.preprocess.sor import SorConfig
 from slam.registration.gicp import (
     GicpConfig,
     GicpTarget,
@@ -53,6 +54,7 @@ class MapRefresh(Enum):
 
     NEIGHBOURS = "neighbours"
     NEW = "new"
+    ON_USE = "on_use"  # neighbours flagged stale, recomputed when a registration reaches them
 
 
 def _choice(kind: type[Enum], value: str, key: str) -> Enum:
@@ -153,6 +155,7 @@ class ImprovedFloamConfig(CommonConfig):
     map_covariance: str = "map"
     map_refresh: str = "neighbours"
     map_refresh_thread: bool = True
+    filter_ahead: bool = True  # the next scan's stride and SOR on a worker thread
     max_registration_points: int = 8000
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
@@ -174,21 +177,6 @@ class ImprovedFloamConfig(CommonConfig):
             _choice(MapCovariance, self.map_covariance, "map_covariance"),
             _choice(MapRefresh, self.map_refresh, "map_refresh"),
         )
-
-
-@dataclass
-class Filtered:
-    """A scan after the column stride and SOR. raw: the points SOR judged (after the
-    stride), with their neighbourhoods ``nbh`` (None: SOR off) and the kept mask ``keep``;
-    xyz / rings: the kept points and their rings (None: the driver gave none); stride: the
-    column stride applied (None: the scan was not dense enough to try)."""
-
-    raw: np.ndarray
-    keep: np.ndarray
-    nbh: Neighbourhoods | None
-    xyz: np.ndarray
-    rings: np.ndarray | None
-    stride: int | None
 
 
 @dataclass
@@ -228,13 +216,16 @@ class ImprovedFloam(ScanToMapFrontend):
         self.cfg = cfg or ImprovedFloamConfig()
         super().__init__(self.cfg)
         self._map = VoxelHashMap(self.cfg.map, with_covariances=True)
+        self._fresh = FreshCovarianceMap(self._map, self._map_covariances)
         # the map covariances of scan n are refreshed while scan n + 1 is filtered
         self._map_job = Deferred(self.cfg.map_refresh_thread, "map-refresh")
         self._map_job_ms = 0.0  # the last refresh's own wall time
         self._cov_source, self._map_cov, self._refresh = self.cfg.strategies()
         # features are picked without kappa; the correction runs on the downsampled features
         self._features_no_kappa = replace(self.cfg.features, use_covariance_curvature=False)
-        self._n_thinned = 0  # scans thinned by the column stride so far (its phase)
+        # stride and SOR before deskew, the next scan's on a worker thread meanwhile
+        self._scan_filter = ScanFilter(self.cfg, threaded=self.cfg.filter_ahead)
+        self._filtered: Filtered | None = None
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         # the map refresh of the previous scan runs on the other core meanwhile
@@ -255,7 +246,7 @@ class ImprovedFloam(ScanToMapFrontend):
     def _prepare(self, scan: Scan, T_pred: np.ndarray, timings: dict) -> Estimate:
         """SOR, features and their covariances (``est.pending``): everything before the
         registration, none of it reading the map."""
-        flt = self._filter(scan, timings)
+        flt = self._filtered.moved_to(scan.xyz)  # the filter's decisions, deskewed points
         counts: dict = {"n_after_sor": int(len(flt.xyz))}
         if flt.stride is not None:
             counts.update(column_stride=flt.stride, n_after_stride=int(len(flt.raw)))
@@ -279,33 +270,13 @@ class ImprovedFloam(ScanToMapFrontend):
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
-    def _filter(self, scan: Scan, timings: dict) -> Filtered:
-        """The column stride of a scan denser than the paper's sensor (one point per
-        ``stride`` columns per ring), then the paper's SOR."""
-        cfg = self.cfg
-        raw, ring, stride = scan.xyz, scan.ring, None
-        if cfg.max_scan_points and len(raw) > cfg.max_scan_points:
-            t = time.perf_counter()
-            if ring is None:
-                ring = ring_from_elevation(raw, cfg.features.n_beams, cfg.features.fov_deg)
-            kept, stride = thin_scan(
-                raw, ring, cfg.max_scan_points, cfg.min_ring_columns, self._n_thinned
-            )
-            self._n_thinned += 1
-            if kept is not None:
-                raw, ring = raw[kept], np.asarray(ring)[kept]
-            timings["stride_ms"] = (time.perf_counter() - t) * 1e3
-        t = time.perf_counter()
-        # with the scan's rings: the exact range-image k-NN (same neighbours as a KD-tree)
-        nbh = neighbourhoods(raw, cfg.sor.k, ring=ring) if cfg.sor.enabled else None
-        keep = apply_sor(raw, cfg.sor, nbh)
-        # only what the features need (the scan is deskewed already: no time, no intensity)
-        xyz, rings = raw, ring
-        if not keep.all():
-            xyz = raw[keep]
-            rings = None if rings is None else rings[keep]
-        timings["sor_ms"] = (time.perf_counter() - t) * 1e3
-        return Filtered(raw, keep, nbh, xyz, rings, stride)
+    def look_ahead(self, scan: Scan) -> None:
+        self._scan_filter.ahead(scan)
+
+    def _before_deskew(self, scan: Scan, work: Scan, timings: dict) -> None:
+        self._filtered, waited = self._scan_filter.get(scan, work)
+        timings.update(self._filtered.timings)
+        timings["filter_wait_ms"] = waited * 1e3
 
     def _feature_indices(self, flt: Filtered, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge and plane indices into ``flt.xyz``: LOAM features voxel-thinned in place, then
@@ -371,7 +342,8 @@ class ImprovedFloam(ScanToMapFrontend):
         """GICP against the map (its voxel hash answers the neighbour queries) from
         ``T_pred``; ``wide``: a coarse pass with a wider search first."""
         rc = self.cfg.registration
-        target = GicpTarget(self._map.points, self._map.covs, tree=self._map)
+        tree = self._fresh if self._refresh is MapRefresh.ON_USE else self._map
+        target = GicpTarget(self._map.points, self._map.covs, tree=tree)
         T0 = T_pred
         if wide:  # tracking lost: coarse pass from the prediction with a wider search
             d = rc.max_correspondence * self.cfg.recovery_correspondence_factor
@@ -383,20 +355,16 @@ class ImprovedFloam(ScanToMapFrontend):
     def map(self) -> VoxelHashMap:
         """The local map, once its pending covariance refresh is done."""
         self._map_job.wait()
+        self._fresh.refresh()
         return self._map
 
     def close(self) -> None:
-        """Finish the pending map refresh and stop its worker thread."""
+        """Finish the pending jobs and stop the worker threads."""
         self._map_job.close()
+        self._scan_filter.close()
 
     def _map_size(self) -> int:
         return len(self._map)
-
-    def _scan_state(self) -> int:
-        return self._n_thinned  # the column stride's phase advances once per scan
-
-    def _restore_scan_state(self, state: int) -> None:
-        self._n_thinned = state
 
     def _insert(self, est: Estimate[FeatureCloud], timings: dict) -> None:
         cfg, rc = self.cfg, self.cfg.registration
@@ -434,7 +402,11 @@ class ImprovedFloam(ScanToMapFrontend):
         pts = self._map.points
         _, nb = self._map.query(pts[new], k=rc.k_covariance)
         dirty, nb_dirty = new, nb
-        if self._refresh is MapRefresh.NEIGHBOURS:
+        if self._refresh is MapRefresh.ON_USE:
+            # the old points among the new points' neighbours wait for their first use
+            old = nb[nb < n_old]
+            mark_stale(self._map.covs, old)
+        elif self._refresh is MapRefresh.NEIGHBOURS:
             # the old points among the new points' neighbours; the new ones (the last rows)
             # reuse the query above
             mark = np.zeros(n_old, dtype=bool)
@@ -443,14 +415,23 @@ class ImprovedFloam(ScanToMapFrontend):
             _, nb_old = self._map.query(pts[old], k=rc.k_covariance)
             dirty = np.concatenate([old, new])
             nb_dirty = np.concatenate([nb_old.reshape(-1, nb.shape[1]), nb])
-        self._map.covs[dirty] = estimate_covariances(
+        self._map.covs[dirty] = self._map_covariances(dirty, nb_dirty)
+
+    def _map_covariances(
+        self, rows: np.ndarray, neighbours: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Eq. (1) for map ``rows`` from their k nearest map points (queried when not given)."""
+        rc, pts = self.cfg.registration, self._map.points
+        if neighbours is None:
+            _, neighbours = self._map.query(pts[rows], k=rc.k_covariance)
+        return estimate_covariances(
             pts,
             rc.k_covariance,
             rc.lambda_reg,
             rc.covariance_mode,
-            query=pts[dirty],
+            query=pts[rows],
             plane_epsilon=rc.plane_epsilon,
             line_ratio=rc.line_ratio,
             threads=rc.threads,
-            neighbours=nb_dirty,
+            neighbours=neighbours,
         )

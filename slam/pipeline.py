@@ -54,13 +54,16 @@ def run_stream(
     """
     st = system.state
     began = time.perf_counter()
+    held = _Held(system)
     try:
         with StopRequest() as stop:  # Ctrl-C: stop after the message in hand
             for item in stream.items(stop=lambda: stop.requested, on_message=on_message):
                 if isinstance(item, Scan):
-                    system.process(item)
-            if stop.requested:
+                    held.push(item)
+            if stop.requested:  # the scan read ahead is dropped like the reorder buffer
                 st.stopped(StopReason.INTERRUPTED)
+            else:
+                held.flush()
     except KeyboardInterrupt:
         st.stopped(StopReason.INTERRUPTED)
     except SystemError as exc:  # Ctrl-C inside a compiled call (numba loading a kernel)
@@ -69,7 +72,7 @@ def run_stream(
         st.stopped(StopReason.INTERRUPTED)
     except InputError as exc:
         st.stopped(StopReason.BAD_INPUT, str(exc))
-        _drain(system, stream)
+        _drain(system, stream, held)
     except BackendError:
         pass  # recorded by the system where it failed
     finally:
@@ -78,9 +81,32 @@ def run_stream(
     return st
 
 
-def _drain(system: SlamSystem, stream: ScanStream) -> None:
-    """The scans the stream holds, processed after the input stopped with an error."""
+class _Held:
+    """One scan held back: each scan is announced to the system (``look_ahead``) when it
+    is read and processed after the next one is read, so the front end can start on the
+    next scan while it processes this one."""
+
+    def __init__(self, system: SlamSystem):
+        self._system = system
+        self._scan: Scan | None = None
+
+    def push(self, scan: Scan) -> None:
+        self._system.look_ahead(scan)
+        held, self._scan = self._scan, scan
+        if held is not None:
+            self._system.process(held)
+
+    def flush(self) -> None:
+        held, self._scan = self._scan, None
+        if held is not None:
+            self._system.process(held)
+
+
+def _drain(system: SlamSystem, stream: ScanStream, held: _Held) -> None:
+    """The scan held back and the scans the stream holds, processed after the input
+    stopped with an error."""
     try:
+        held.flush()
         for item in stream.drain():
             if isinstance(item, Scan):
                 system.process(item)

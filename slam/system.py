@@ -73,6 +73,8 @@ class SlamSystem:
         self.factor_sources = (
             factor_sources if factor_sources is not None else build_factor_plugins(config.factors)
         )
+        # optional: a front end that can start on the next scan early
+        self._look_ahead = getattr(self.frontend, "look_ahead", None)
         self.state = RunState()
         self.timer = self.state.timer
         self.observers = Observers(observers)
@@ -92,6 +94,12 @@ class SlamSystem:
         return cached
 
     # ------------------------------------------------------------------ per frame
+    def look_ahead(self, scan: Scan) -> None:
+        """``scan`` comes after the scans announced before it: the front end may start on it
+        (``look_ahead``, optional) while it processes those."""
+        if self._look_ahead is not None:
+            self._look_ahead(scan)
+
     def process(self, scan: Scan) -> Odometry:
         """One scan through front end, factor plugins and back end (O(1) per frame:
         nothing here scans the frames or keyframes so far). Raises BackendError when the

@@ -112,14 +112,15 @@ def _interrupt_in_compiled_code() -> SystemError:
     ],
 )
 def test_interrupted_run_keeps_everything_computed(tmp_path, stop, reason):
-    """Bad input (a truncated bag) first processes the scans the reorder buffer holds;
-    Ctrl-C does not: those were read, not computed, and an abort is at once."""
+    """Bad input (a truncated bag) first processes the scans the reorder buffer holds and
+    the scan read ahead; Ctrl-C does not: those were read, not computed, and an abort is at
+    once."""
     poses = circle_odometry(n=40)
     pipe = make_pipeline(poses)
     st = pipe.run(scans(40, stop_with=stop, at=25))
-    held = 0 if reason == "bad input" else pipe.config.source.reorder_window
+    held = 0 if reason == "bad input" else pipe.config.source.reorder_window + 1
     n = 25 - held
-    assert held in (0, 4) and st.frames == n and st.stopped_by.startswith(reason)
+    assert held in (0, 5) and st.frames == n and st.stopped_by.startswith(reason)
     assert st.stop.reason is {"interrupted": StopReason.INTERRUPTED,
                               "bad input": StopReason.BAD_INPUT}[reason]  # fmt: skip
     written = write_outputs(pipe, tmp_path, resolved_config=resolved_config(pipe.config))

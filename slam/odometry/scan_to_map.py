@@ -130,7 +130,7 @@ class ScanToMapFrontend:
         T_pred = self.motion.predict(scan.stamp)
         work = crop(scan, self._c.min_range, self._c.max_range)
         f.diag.n_after_crop = int(len(work))
-        T_pred = self._register(work, T_pred, f)
+        T_pred = self._register(scan, work, T_pred, f)
         if f.est is not None and f.diag.skipped is None:
             self._judge(f, T_pred)
         self._close_tracking(f)
@@ -147,12 +147,14 @@ class ScanToMapFrontend:
         f.timings["total_ms"] = (time.perf_counter() - t0) * 1e3
         return self._odometry(f, pose, kf, self._status(f, initialising))
 
-    def _register(self, work: Scan, T_pred: np.ndarray, f: _Frame) -> np.ndarray:
-        """Deskew and register the cropped scan (``f.est``, ``f.filtered``); returns the
-        prediction it started from (the best gap hypothesis after a long gap)."""
+    def _register(self, scan: Scan, work: Scan, T_pred: np.ndarray, f: _Frame) -> np.ndarray:
+        """Deskew and register the cropped scan ``work`` of ``scan`` (``f.est``,
+        ``f.filtered``); returns the prediction it started from (the best gap hypothesis
+        after a long gap)."""
         if len(work) < self._c.min_points:
             f.diag.skipped = f"too few points ({len(work)} < {self._c.min_points} after range crop)"
             return T_pred
+        self._before_deskew(scan, work, f.timings)
         t = time.perf_counter()
         work = self.motion.deskew(work)
         f.timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
@@ -180,6 +182,14 @@ class ScanToMapFrontend:
         has_own = f.est is not None and f.est.filtered is not None
         f.filtered = f.est.filtered if has_own else work.xyz
         return T_pred
+
+    def _before_deskew(self, scan: Scan, work: Scan, timings: dict) -> None:
+        """Work on the cropped scan that needs no motion estimate (e.g. outlier removal),
+        done before deskew so that it can run ahead of time (``look_ahead``)."""
+
+    def look_ahead(self, scan: Scan) -> None:
+        """``scan`` will be processed after the scan in hand: a front end may start its
+        ``_before_deskew`` work on another thread meanwhile (same results)."""
 
     def _scan_state(self) -> object:
         """What ``_estimate`` changes in the front end per scan (e.g. a dynamics tracker),
