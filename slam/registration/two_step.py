@@ -28,16 +28,10 @@ import numpy as np
 from slam.deskew import se3_log
 from slam.errors import ConfigError
 from slam.registration.feature_icp import FeatureTarget
-from slam.registration.gicp import (
-    RegistrationError,
-    RegistrationResult,
-    _check_points,
-    _workers,
-    se3_exp,
-    skew,
-    solve_weighted,
-    transform,
-)
+from slam.registration.neighbours import _workers
+from slam.registration.result import RegistrationError, RegistrationResult, _check_points
+from slam.registration.se3 import se3_exp, skew, transform
+from slam.registration.solver import solve_weighted
 
 # tangent indices (rotation first, GTSAM order): step 1 = roll, pitch, z; step 2 = yaw, x, y
 GROUND_DOF = (0, 1, 5)
