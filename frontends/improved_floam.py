@@ -71,76 +71,33 @@ def _improved_features() -> FeatureConfig:
 
 
 def _improved_plausibility() -> PlausibilityConfig:
-    """The gate with a 0.1 m per-frame floor off the constant-velocity prediction (the
-    common default is 0.3 m). GICP on a plain corridor with people walking along it crept
-    0.1-0.3 m per frame along the corridor and the motion model fed it back until the
-    estimate ran away (building_loop: 549 m APE; 5.55 m with 0.1 m). Unchanged on every
-    README scene and sensor, the urban drive and KITTI-raw. Not the common default: with
-    0.1 m LeGO-LOAM-LPB, whose fitness test already rejects ~7 % of the building's frames,
-    lost 541 of 4412 and ran away (57 m), and FLOAM's S route went 4.68 -> 5.21 m."""
+    """The gate with a 0.1 m per-frame floor off the constant-velocity prediction (the common
+    default is 0.3 m): GICP pulled along a plain corridor by people walking in it creeps
+    unnoticed at 0.3 m (docs/robustness.md, "Pulled along a corridor")."""
     return PlausibilityConfig(prediction_floor=0.1)
 
 
 @dataclass
 class ImprovedFloamConfig(CommonConfig):
-    """Improved FLOAM settings. edge_voxel/plane_voxel (m) thin the feature sets before
-    registration (the paper registers 800-1200 features per frame). covariance_source:
-    "features" (default) = from the feature set itself (eq. (1) on the voxel-thinned feature
-    cloud, whose neighbourhoods span several scan lines even on open ground); "scan" = from
-    each feature's k neighbours in the whole filtered scan voxel-downsampled to
-    ``covariance_voxel``. At car speed "scan" leaves the ground to single-ring supports
-    (isotropic, no normal): the ground stops constraining pitch and height, and the urban
-    drive climbed 8 m in 120 m (APE 7.86 m over 300 frames; "features" 0.41-0.53 m; park 2.8 ->
-    2.1 cm, corridor 1.18 -> 1.19 cm, plaza 0.71 -> 0.81 cm over 300 frames). map_covariance:
-    "map" = covariances of newly inserted map points, and of the map points near them,
-    from their k neighbours in the map (the target "calculated identically", dense over
-    many scans, refreshed as the map fills in; the default); "scan" = keep the source
-    covariances rotated into the map frame. map_refresh: "neighbours" = the new points' map
-    neighbours get their covariance recomputed too (default); "new" = only the new points
-    (~20 % faster on outdoor maps; park 2.2 vs 2.6 cm, plaza 0.88 vs 0.77 cm APE over 300 frames).
-    map_refresh_thread: the map refresh of scan n runs on a worker thread while scan n + 1 is
-    filtered and its features found, and is waited for before scan n + 1 registers (the
-    same poses as inline, ``slam.deferred``); false: inline.
-    max_registration_points: when the thinned features exceed this many (dense 64-128 beam
-    scans), GICP registers a density-aware subset of them (``thin_to_count``: edges and planes
-    voxel-thinned again, both voxels grown by the same factor); their covariances still come
-    from all the features and the map still receives all of them. 0 = register every feature.
-    8000 leaves 16-beam scans alone (corridor ~600 features, park ~1900, urban drive ~5100)
-    and registers ~62 % of a 64/128-beam scan's 11.7k / 12.4k (urban, first 100 frames, with
-    predict_convergence: APE HDL-64 4.89 -> 4.92 cm, OS-128 4.11 -> 3.94 cm).
+    """Improved FLOAM settings (paper 000); distances in m. Why the defaults: docs/paper000.md
+    (GICP settings) and docs/speed.md (64 beams).
 
-    max_scan_points / min_ring_columns: the column stride of scans denser than the sensors
-    measured here (``slam.preprocess.column_stride``, before SOR: the paper's k=10 SOR of
-    every raw point is the dearest stage). A scan of more than max_scan_points points keeps
-    one point per s = ceil(n / max_scan_points) azimuth columns of each ring, every ring
-    kept (vertical resolution unchanged, LOAM's along-ring curvature intact), the columns
-    chosen by azimuth (never by storage order) and advancing one column per frame; s is
-    capped so that each ring keeps >= min_ring_columns columns (1024 = 0.35 deg, the
-    horizontal resolution of an OS1-128 in its 1024 mode, 3.9 cm APE over the first 100
-    urban frames). 0 = never thin. The defaults touch only scans above 140k points, e.g. a
-    128-beam sensor at 2048 columns (262k -> 131k points, 0.18 -> 0.35 deg); 16-beam
-    (23-57k), 32-beam (69k) and 64-beam (120-133k) scans pass unchanged. Measured trade-off
-    of thinning 64-beam scans (s = 2, 2083 -> 1041 columns, 0.17 -> 0.35 deg, all 64 rings):
-    urban HDL-64E, first 100 frames, APE RMSE 4.9 -> 19.5 cm (11.2 cm with a fixed column
-    choice) at 1.8x the frames/s, s = 3: 11.7 cm at 1.3x, no frame lost (s = 3 with a fixed
-    column choice ran away when the car started: the standing scans had sampled the same
-    azimuths, so the first moving residuals looked lost: 36.9 m); KITTI-raw, 22 real scans:
-    per-frame motion vs small_gicp 0.69 -> 1.42 cm mean (max 1.86 -> 3.16) at 4.4x the
-    frames/s; OS1-128 thinned 1024 -> 512 columns (min_ring_columns 500), first 100 urban
-    frames, front-end position error at the end 7.8 -> 19.8 cm, largest step error 2.6 ->
-    10.1 cm at 1.7x (why the floor is 1024). Thin poles and kerbs lose their edge features
-    at 0.35 deg: opt in with
-    ``max_scan_points: 70000`` where speed matters more than the last centimetres.
-
-    Source covariances know the scan lines (rings) of their support: on open ground a
-    16-beam ring is a thin arc, a feature's k neighbours lie on that ring alone, and eq. (1)
-    on them claims a sharp "normal" towards the next ring. The ring pattern moves with the
-    sensor, so trusting it snapped every scan onto the map's rings (toward zero motion).
-    A support from one ring borrows the nearest points of the other rings within
-    ``registration.span_distance`` (eq. (1) then sees the surface across the rings); only
-    where no other ring is that close is it isotropic at its extent (no trusted direction,
-    see ``estimate_covariances``). Supports spanning rings keep eq. (1) as written. The map
-    side is the dense map itself (many scans, many rings), so it needs no labels.
+    edge_voxel / plane_voxel: voxel-thin the feature sets before registration (the paper
+    registers 800-1200 features per frame).
+    covariance_source: source covariances (eq. (1)) from the voxel-thinned "features"
+    (default) or from the whole filtered "scan" voxel-downsampled to covariance_voxel.
+    map_covariance: new map points get eq. (1) from their neighbours in the "map" (default)
+    or keep the "scan" covariances rotated into the map.
+    map_refresh: recompute the new points and their map "neighbours" (default) or the "new"
+    points only. map_refresh_thread: refresh the map of scan n on a worker thread while
+    scan n + 1 is filtered (same poses as inline, ``slam.deferred``).
+    max_registration_points: above this many thinned features GICP registers a
+    density-aware subset (``thin_to_count``); covariances and the map still use all (0 = all).
+    max_scan_points / min_ring_columns: a scan of more points keeps one point per
+    s = ceil(n / max_scan_points) azimuth columns of each ring, every ring kept, at least
+    min_ring_columns per ring (``slam.preprocess.column_stride``, before SOR; 0 = never).
+    Source covariances know the rings of their support: a one-ring support borrows the other
+    rings' points within ``registration.span_distance`` (``estimate_covariances``).
     """
 
     sor: SorConfig = field(default_factory=SorConfig)

@@ -87,16 +87,12 @@ def _lpb_segmentation() -> SegmentationConfig:
 
 @dataclass
 class LegoLpbConfig(LegoLoamConfig):
-    """LeGO-LOAM-LPB settings: LeGO-LOAM's plus the four switchable blocks.
+    """LeGO-LOAM-LPB settings: LeGO-LOAM's plus the four switchable blocks (paper 001).
 
-    segmentation: off by default (the paper's preprocessing cleans the cloud instead of
-    LeGO's small-cluster removal, which on the park dropped the trunks, lamps and benches
-    the odometry needs: 120 frames 31 cm -> 10 cm origin-aligned APE for LeGO-LOAM itself).
-
+    segmentation: off (the paper's preprocessing replaces LeGO's small-cluster removal).
     max_dynamic_fraction: when the dynamics block flags more than this share of a scan's
-    points as moving, none is removed (``extras["dynamic_vetoed"]`` = 1): a third of a
-    corridor scan flagged over ten frames (simulated corridor, frames 43-53) is not people
-    walking; removing it starves the registration."""
+    points as moving, none is removed (``extras["dynamic_vetoed"]`` = 1). Why both:
+    docs/paper001.md (Two-step settings)."""
 
     outliers: JumpOutlierConfig = field(default_factory=JumpOutlierConfig)
     ground: GroundSection = field(default_factory=GroundSection)

@@ -1,4 +1,4 @@
-"""One-scan-line supports borrow the neighbouring scan line (slam.registration.gicp)."""
+"""One-scan-line supports borrow the neighbouring scan line (slam.registration.covariances)."""
 
 import numpy as np
 import pytest
@@ -50,7 +50,7 @@ def test_negative_span_distance_is_a_config_error():
 def test_half_then_wide_search_equals_one_wide_search(monkeypatch):
     """The k_wide / 2 search, widened only where it cannot settle a row, gives the
     covariances of one k_wide search to the bit (rows settled by either search occur)."""
-    import slam.registration.gicp as G
+    import slam.registration.covariances as G
 
     rng = np.random.default_rng(3)
     rings = []

@@ -28,38 +28,31 @@ from slam.sensor.beam_table import estimate_beams
 
 @dataclass
 class FeatureConfig:
-    """LOAM feature settings (A-LOAM/F-LOAM defaults). Distances in m, gaps in m^2.
+    """LOAM feature settings (A-LOAM / F-LOAM defaults); distances in m, squared gaps in m^2.
+    The curvature is c = ||sum_j (p_j - p_i)||^2 over ``window`` ring neighbours each side."""
 
-    n_beams/fov_deg: how to guess rings when the scan has none: n_beams = 0 (default) infers
-    the beam table from the scan itself (``slam.sensor.estimate_beams``: point layout or
-    elevation histogram, any beam count); n_beams > 0 spreads that many beams evenly over
-    fov_deg (deg). The pipeline normally fills the ring once per sensor, so neither is used.
-    window: neighbours each side for the curvature c = ||sum_j (p_j - p_i)||^2 (m^2) and for
-    suppression. edge_threshold/plane_threshold: c above -> edge candidate, below -> plane.
-    max_less_sharp: edges per ring and sector.
-    neighbor_gap: squared gap between consecutive ring points that stops suppression.
-    reject_occluded/reject_parallel: LOAM's two rejections (occlusion_gap m^2 and
-    occlusion_ratio as in LOAM; parallel_ratio * range^2 bound on both consecutive squared
-    gaps). use_covariance_curvature: drop edge candidates whose kNN
-    neighbourhood (cov_k points) is planar (kappa > kappa_edge_max) and plane points whose
-    neighbourhood is volumetric scatter (kappa > kappa_plane_max); see ``extract_features``.
-    """
-
+    # rings guessed when the scan has none (the pipeline normally fills them once per sensor):
+    # 0 = the beam table from the scan itself (``slam.sensor.estimate_beams``), n > 0 = n
+    # beams spread evenly over fov_deg (deg)
     n_beams: int = 0
     fov_deg: tuple[float, float] = (-15.0, 15.0)
-    window: int = 5
+    window: int = 5  # neighbours each side for the curvature and for suppression
     n_sectors: int = 6
-    edge_threshold: float = 0.1
-    plane_threshold: float = 0.1
-    max_less_sharp: int = 20
+    edge_threshold: float = 0.1  # c above: edge candidate
+    plane_threshold: float = 0.1  # c below: plane candidate
+    max_less_sharp: int = 20  # edges per ring and sector
     min_range: float = 0.5
     max_range: float = 200.0
-    neighbor_gap: float = 0.05
+    neighbor_gap: float = 0.05  # squared gap between consecutive ring points that stops suppression
+    # LOAM's two rejections: occluded (occlusion_gap, occlusion_ratio as in LOAM) and beams
+    # parallel to the surface (both consecutive squared gaps above parallel_ratio x range^2)
     reject_occluded: bool = True
     reject_parallel: bool = True
     occlusion_gap: float = 0.1
     occlusion_ratio: float = 0.1
     parallel_ratio: float = 0.0002
+    # drop edge candidates whose cov_k-neighbourhood is planar (kappa > kappa_edge_max) and
+    # plane points in volumetric scatter (kappa > kappa_plane_max); ``extract_features``
     use_covariance_curvature: bool = False
     cov_k: int = 10
     kappa_edge_max: float = 1.38

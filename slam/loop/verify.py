@@ -66,7 +66,7 @@ class VerifyParams:
     coarse_max_correspondence (m): the coarse stage (kept only if it improves the fine score).
     coarse_registration: "gicp" (KD-tree GICP on both clouds at coarse_voxel) or "vgicp"
     (the source against the fine target's Gaussian voxels of coarse_vgicp_resolution m:
-    cheaper, but it let a corridor loop through 4 deg off in roll, so not the default).
+    cheaper, but not the default, docs/loops.md).
     global_search (m, 0 = off): the bird's-eye-view start search, on a grid of bev_cell m
     over yaws of bev_yaw_offsets_deg, skipped when the guess already scores
     global_skip_overlap. try_flip: also start half a turn from the guess (Scan Context's yaw

@@ -56,19 +56,11 @@ class LocalMapConfig:
     """voxel_size (m), max_points_per_voxel, radius (m) of the kept neighbourhood.
 
     prune_distance (m): points beyond ``radius`` are dropped once the sensor has moved this
-    far since the last pruning (it visits only the coarse cells the sphere cuts, and moves
-    the last rows into the holes: no pass over the whole map). Right after a pruning no
-    point is farther than ``radius`` from the sensor except those the current scan adds;
-    points that were within ``radius`` at the last pruning stay within ``radius +
-    prune_distance``; the scans since the last pruning reach as far as the sensor does
-    (cropping them at ``radius`` on insertion cost the park 22 % APE: 2.8 -> 3.4 cm over
-    300 frames).
-
-    threads: numba threads for query batches of at least ``PARALLEL_QUERIES`` points (the
-    answers do not depend on it), never more than the calling thread's numba thread count
-    (a map refresh on a worker thread runs serial, ``slam.deferred``); 1 = always serial,
-    the default: 2 threads gave the urban VLP-16 and corridor runs the same wall time
-    (whole process, 0.99-1.00x, quiet machine) and cost CPU under load."""
+    far since the last pruning (only the coarse cells the sphere cuts are visited): older
+    points stay within ``radius + prune_distance``, newer scans reach as far as the sensor.
+    threads: numba threads for query batches of at least ``PARALLEL_QUERIES`` points (same
+    answers; a map refresh on a worker thread runs serial); 1 = always serial (the default:
+    a second thread saves no wall time, docs/speed.md)."""
 
     voxel_size: float = 0.5
     max_points_per_voxel: int = 20

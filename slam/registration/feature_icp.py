@@ -18,14 +18,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError
-from slam.registration.gicp import (
-    RegistrationError,
-    RegistrationResult,
-    _check_points,
-    _workers,
-    solve_weighted,
-    transform,
-)
+from slam.registration.neighbours import _workers
+from slam.registration.result import RegistrationError, RegistrationResult, _check_points
+from slam.registration.se3 import transform
+from slam.registration.solver import solve_weighted
 
 
 @dataclass

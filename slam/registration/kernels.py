@@ -2,9 +2,9 @@
 
 - ``linearise`` / ``cost``: H = sum w J^T W J, b = sum w J^T W e, cost = sum w e^T W e with
   e = R p + t - q and J = R [-[p]x, I] (rotation first, right perturbation) -- the numpy
-  reference is ``slam.registration.gicp._linearise`` / ``_cost``.
+  reference is ``slam.registration.solver._linearise`` / ``_cost``.
 - ``gicp_information``: W_i = (R Sigma_p,i R^T + Sigma_q,j(i))^-1, eqs. (3) and (5) of paper
-  000 -- the numpy reference is the einsum + ``np.linalg.inv`` in ``gicp_align``.
+  000 -- the numpy reference is the einsum + ``np.linalg.inv`` of ``gicp_align``'s association.
 
 One pass over the correspondences, no (N, 3, 6) temporaries; serial (a few thousand
 correspondences per frame: threads would cost more than they save on 2 cores).
@@ -66,7 +66,7 @@ def _c(a):
 
 
 def linearise(T, p, q, W, w):
-    """(H 6x6, b 6, cost) of sum w e^T W e; same as ``gicp._linearise``."""
+    """(H 6x6, b 6, cost) of sum w e^T W e; same as ``solver._linearise``."""
     H = np.zeros((6, 6))
     b = np.zeros(6)
     cost = _accumulate(_c(T), _c(p), _c(q), _c(W), _weights(w, len(p)), H, b, True)
@@ -74,7 +74,7 @@ def linearise(T, p, q, W, w):
 
 
 def cost(T, p, q, W, w) -> float:
-    """sum w e^T W e; same as ``gicp._cost``."""
+    """sum w e^T W e; same as ``solver._cost``."""
     H = np.zeros((1, 1))
     b = np.zeros(1)
     return float(_accumulate(_c(T), _c(p), _c(q), _c(W), _weights(w, len(p)), H, b, False))
@@ -163,7 +163,7 @@ def _neighbour_covariances(xyz, idx, out):
 def neighbour_covariances(xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """(n, 3, 3) sample covariances 1/(k-1) sum (p - mean)(p - mean)^T of the neighbour sets
     ``xyz[idx]`` (idx (n, k), k >= 2), m^2: eq. (1) of paper 000 without the lambda I; the
-    numpy reference is the einsum in ``gicp.estimate_covariances``."""
+    numpy reference is the einsum in ``covariances._sample_covariances``."""
     out = np.empty((len(idx), 3, 3))
     _neighbour_covariances(_c(xyz), np.ascontiguousarray(idx, dtype=np.int64), out)
     return out

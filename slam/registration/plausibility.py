@@ -27,43 +27,31 @@ from slam.registration.gicp import RegistrationResult
 
 @dataclass
 class PlausibilityConfig:
-    """Gate of a registration (relative tests need ``warmup`` trusted frames first).
-
-    window: trusted frames in the running medians. max_fitness_ratio: an RMSE above this
-    many times the median RMSE is implausible. min_inlier_ratio: an inlier share below this
-    fraction of the median share is implausible; min_support_ratio: likewise for the number
-    of correspondences (a blinded sensor registers a hundred close points where the scene
-    gave thousands); min_information_ratio: likewise for the smallest eigenvalue of the
-    normalised information (``information.information_from_hessian``; clean simulated
-    drives stay above 0.026 x median, the corridor's weak axis being the lowest).
-    max_speed (m/s) / max_turn_rate_deg (deg/s): physical bounds of the motion.
-    max_acceleration (m/s^2) / max_angular_acceleration_deg (deg/s^2): how far the pose may
-    leave the constant-velocity prediction, 0.5 a T^2 over the time T since the last
-    trusted pose, plus prediction_floor (m) / prediction_floor_deg (noise of the estimates).
-    improved_floam sets 0.1 m per 10 Hz frame (2x what a car braking at 1 g leaves the
-    prediction by): 0.3 m let its GICP, pulled along a featureless corridor by people
-    walking in it (building_loop), gain 0.1-0.3 m per frame unnoticed until the motion
-    model's feedback ran it away (549 m APE; 5.5 m with 0.1 m). The default stays 0.3 m:
-    with 0.1 m LeGO-LOAM-LPB lost 541 of the building's 4412 frames and ran away (57 m).
-    unconverged_fitness_ratio: a registration that stopped on its iteration cap or stalled
-    (flagged not converged) is believed only when its RMSE is within this factor of the
-    median, i.e. it crept along a weakly constrained direction but fits as well as usual;
-    before there is a normal it is not believed.
-    """
+    """Gate of a registration: relative tests against running medians of trusted frames, and
+    physical bounds. Why the values: docs/robustness.md (What the front end does with bad
+    motion)."""
 
     enabled: bool = True
-    window: int = 50
-    warmup: int = 5
-    max_fitness_ratio: float = 3.0
-    min_inlier_ratio: float = 0.5
+    window: int = 50  # trusted frames in the running medians
+    warmup: int = 5  # trusted frames before the relative tests apply
+    max_fitness_ratio: float = 3.0  # RMSE above this x the median RMSE: implausible
+    min_inlier_ratio: float = 0.5  # inlier share below this x the median share: implausible
+    # likewise for the number of correspondences (a blinded sensor registers a hundred close
+    # points where the scene gave thousands)
     min_support_ratio: float = 0.2
+    # likewise for the smallest eigenvalue of the normalised information
+    # (``information.information_from_hessian``)
     min_information_ratio: float = 1e-3
-    max_speed: float = 40.0
-    max_turn_rate_deg: float = 180.0
+    max_speed: float = 40.0  # m/s
+    max_turn_rate_deg: float = 180.0  # deg/s
+    # how far the pose may leave the constant-velocity prediction: 0.5 a T^2 over the time T
+    # since the last trusted pose (m/s^2, deg/s^2) plus the floors (m, deg: estimate noise)
     max_acceleration: float = 20.0
     max_angular_acceleration_deg: float = 720.0
-    prediction_floor: float = 0.3
+    prediction_floor: float = 0.3  # improved_floam: 0.1
     prediction_floor_deg: float = 3.0
+    # a registration flagged not converged (iteration cap, stalled) is believed only when
+    # its RMSE is within this factor of the median (never before there is a median)
     unconverged_fitness_ratio: float = 1.5
 
     def __post_init__(self) -> None:

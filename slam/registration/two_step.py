@@ -28,16 +28,10 @@ import numpy as np
 from slam.deskew import se3_log
 from slam.errors import ConfigError
 from slam.registration.feature_icp import FeatureTarget
-from slam.registration.gicp import (
-    RegistrationError,
-    RegistrationResult,
-    _check_points,
-    _workers,
-    se3_exp,
-    skew,
-    solve_weighted,
-    transform,
-)
+from slam.registration.neighbours import _workers
+from slam.registration.result import RegistrationError, RegistrationResult, _check_points
+from slam.registration.se3 import se3_exp, skew, transform
+from slam.registration.solver import solve_weighted
 
 # tangent indices (rotation first, GTSAM order): step 1 = roll, pitch, z; step 2 = yaw, x, y
 GROUND_DOF = (0, 1, 5)
@@ -46,55 +40,31 @@ EDGE_DOF = (2, 3, 4)
 
 @dataclass
 class TwoStepConfig:
-    """Two-step matching settings (m, rad where not said).
+    """Two-step matching settings (paper 001, section 3.3); m and rad where not said. Why the
+    defaults: docs/paper001.md (Two-step settings)."""
 
-    k_neighbors / max_neighbor_distance / edge_ratio / plane_threshold: LOAM's correspondence
-    tests (as in ``feature_icp``; plane_threshold 0.05 m instead of LOAM's 0.2: a neighbourhood
-    mixing the floor with the foot of a wall tilts the fitted plane the same way at every frame,
-    and the corridor's height drifted 3.9 cm in 10 m with 0.2, 2.5 cm with 0.05, 1.8 cm with
-    0.02; the park's realistic sensor needs the margin). plane_min_spread (m): a plane needs its
-    neighbours spread over at least this (sqrt of the middle eigenvalue), so that a single scan
-    line (collinear points, whose "normal" is any direction around the line) is not taken for a
-    plane. huber_delta (m): robust kernel, 0 = off. two_step: run the two restricted steps
-    before the 6-DoF refinement (False = 6-DoF only, for the ablation). step_iterations: LM
-    iterations of each restricted step; max_iterations: of the final one. ground_weight: weight
-    of each E_ground residual relative to a point-to-plane residual (0 = no ground residual,
-    LeGO-LOAM as published); ground_huber (m): its robust kernel. noise_floor (m): each residual
-    class (edges, planes, ground) is weighted by (noise_floor / sigma)^2, sigma = 1.4826 x its
-    median residual (at least noise_floor), re-estimated at every association: edge lines from
-    sparse rings scatter 5-10 cm while planes fit to 1 cm, and equal weights let the edges'
-    scatter tilt the pose (0.56 deg of pitch on two plaza scans); 0 = equal weights.
-    degenerate_ratio: the degeneracy-aware update of LOAM (Zhang, Kaess and Singh 2016,
-    "solution remapping"): a translation direction whose information (the final Hessian's
-    translation block with the rotation marginalised) is below this fraction of the best
-    direction's is left where the matching started (the prediction), and only the
-    well-constrained directions take the registration's motion: a plain corridor
-    constrains nothing along itself, and what its few edges and distant surfaces say there
-    is noise that holds the scan to the map (the building's plain stretch: 0.035-0.07 of
-    the best, the registration stopping 0.3-0.4 m short per frame at 3 m/s). 0.15 keeps the
-    whole weakly constrained corridor on the prediction (0.08, inside the range the ratio
-    flickers through, let stuck frames set the motion the remapped ones then repeat);
-    LPB on the urban drive: 2 of 300 frames remapped. Off (0) by default: the ratio is to the
-    best translation direction, which the ground can make the vertical one, so that the
-    horizontal axes fall below it (plaza pair with ground_weight 1: a 0.27 m motion
-    remapped away; LeGO-LOAM on the urban drive with 0.15: 234 of 300 frames remapped and
-    it ran away, 51 m APE). Judging the horizontal axes against each other is the next step.
-    """
-
+    # LOAM's correspondence tests (as in ``feature_icp``); plane_threshold 0.05 m, not 0.2
     k_neighbors: int = 5
     max_neighbor_distance: float = 1.0
     edge_ratio: float = 3.0
     plane_threshold: float = 0.05
+    # a plane's neighbours spread at least this far (sqrt of the middle eigenvalue): one scan
+    # line (collinear points) is no plane
     plane_min_spread: float = 0.03
-    huber_delta: float = 0.1
-    two_step: bool = True
-    step_iterations: int = 8
-    max_iterations: int = 20
+    huber_delta: float = 0.1  # robust kernel; 0 = off
+    two_step: bool = True  # the two restricted steps before the 6-DoF refinement (ablation)
+    step_iterations: int = 8  # LM iterations of each restricted step
+    max_iterations: int = 20  # LM iterations of the 6-DoF refinement
+    # weight of each E_ground residual relative to a point-to-plane one (0 = LeGO-LOAM)
     ground_weight: float = 0.0
-    ground_huber: float = 0.1
+    ground_huber: float = 0.1  # the ground residual's robust kernel
+    # each residual class (edges, planes, ground) weighs (noise_floor / sigma)^2, sigma =
+    # 1.4826 x its median residual (>= noise_floor), at every association; 0 = equal weights
     noise_floor: float = 0.02
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
+    # LOAM's solution remapping: translation directions with less than this fraction of the
+    # best direction's information keep the prediction; 0 = off
     degenerate_ratio: float = 0.0
     threads: int = 2
 
