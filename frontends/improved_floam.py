@@ -88,9 +88,12 @@ class ImprovedFloamConfig(CommonConfig):
     (default) or from the whole filtered "scan" voxel-downsampled to covariance_voxel.
     map_covariance: new map points get eq. (1) from their neighbours in the "map" (default)
     or keep the "scan" covariances rotated into the map.
-    map_refresh: recompute the new points and their map "neighbours" (default) or the "new"
-    points only. map_refresh_thread: refresh the map of scan n on a worker thread while
-    scan n + 1 is filtered (same poses as inline, ``slam.deferred``).
+    map_refresh: recompute the new points and their map "neighbours" (default), the "new"
+    points only, or the neighbours "on_use": flagged stale, recomputed when a registration
+    first reaches them (``slam.mapping.stale_covariances``). map_refresh_thread: refresh the
+    map of scan n on a worker thread while scan n + 1 is prepared (same poses as inline).
+    filter_ahead: the column stride and SOR of scan n + 1 (judged before deskew) run on a
+    worker thread while scan n registers (same poses as inline, ``ScanFilter``).
     max_registration_points: above this many thinned features GICP registers a
     density-aware subset (``thin_to_count``); covariances and the map still use all (0 = all).
     max_scan_points / min_ring_columns: a scan of more points keeps one point per
@@ -112,7 +115,7 @@ class ImprovedFloamConfig(CommonConfig):
     map_covariance: str = "map"
     map_refresh: str = "neighbours"
     map_refresh_thread: bool = True
-    filter_ahead: bool = True  # the next scan's stride and SOR on a worker thread
+    filter_ahead: bool = True
     max_registration_points: int = 8000
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
