@@ -175,8 +175,15 @@ def test_a_start_hypothesis_replaces_the_prediction_only_when_it_explains_more()
 def test_start_hypotheses_search_forward_and_backward_up_to_the_speed_cap():
     m = MotionModel(CommonConfig(start_max_speed=40.0, start_speed_step=20.0), SweepClock())
     m.T_last = pose(5.0)
-    xs = sorted(T[0, 3] - 5.0 for T in m.start_hypotheses(0.1))
-    assert np.allclose(xs, [-4.0, -2.0, 0.0, 2.0, 4.0])  # rest, +-20, +-40 m/s over 0.1 s
-    assert np.allclose(m.start_hypotheses(0.1)[0], pose(5.0))  # rest first
+    starts = m.start_hypotheses(0.1)
+    shifts = np.array([T[:3, 3] - [5.0, 0, 0] for T in starts])
+    along_x = sorted(d[0] for d in shifts if d[1] == 0)
+    along_y = sorted(d[1] for d in shifts if d[0] == 0)
+    assert np.allclose(along_x, [-4.0, -2.0, 0.0, 2.0, 4.0])  # rest, +-20, +-40 m/s over 0.1 s
+    assert np.allclose(along_y, along_x)  # a sensor mounted sideways (nuScenes: y forward)
+    assert len(starts) == 9 and np.allclose(starts[0], pose(5.0))  # rest first
+    # 2 Hz keyframes: neighbouring starts at most start_max_shift (2 m) apart, to 40 m/s
+    slow = sorted(T[0, 3] - 5.0 for T in m.start_hypotheses(0.5) if T[1, 3] == 0)
+    assert np.allclose(np.diff(slow), 2.0) and np.isclose(max(slow), 20.0)
     assert m.start_hypotheses(None) == []
     assert MotionModel(CommonConfig(start_max_speed=0.0), SweepClock()).start_hypotheses(0.1) == []

@@ -49,6 +49,7 @@ class CommonConfig:
     # moved at every speed step up to +-start_max_speed (m/s) along x and y (0 = off) ...
     start_max_speed: float = 40.0
     start_speed_step: float = 20.0  # m/s
+    start_max_shift: float = 2.0  # m: at most this far apart (slow frame rates: finer steps)
     # ... and such a start replaces the prediction's result only when it converged this far
     # (m) from it with this share more correspondences, or the prediction's did not converge
     start_min_shift: float = 0.1

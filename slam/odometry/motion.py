@@ -83,14 +83,19 @@ class MotionModel:
     def start_hypotheses(self, span: float | None) -> list[np.ndarray]:
         """Initial guesses while no velocity is known: the last pose moved along the
         sensor's x and y axes by every ``start_speed_step`` up to +-``start_max_speed``
-        (m/s) over ``span`` seconds, at rest first ([] when off or without a span)."""
+        (m/s) over ``span`` seconds, at rest first ([] when off or without a span). The step
+        shrinks so that neighbouring guesses are at most ``start_max_shift`` m apart (a slow
+        frame rate: 2 Hz keyframes move 1-5 m per scan)."""
         c = self._c
         if c.start_max_speed <= 0 or c.start_speed_step <= 0 or span is None or span <= 0:
             return []
-        n = int(np.floor(c.start_max_speed / c.start_speed_step + 1e-9))
-        speeds = c.start_speed_step * np.arange(1, n + 1)
+        step = c.start_speed_step
+        if c.start_max_shift > 0 and step * span > 1.05 * c.start_max_shift:
+            step = c.start_max_shift / span
+        n = int(np.floor(c.start_max_speed / step + 1e-9))
+        speeds = step * np.arange(1, n + 1)
         steps = [np.zeros(3)]
-        for axis in (0,):
+        for axis in (0, 1):
             for v in np.concatenate([speeds, -speeds]):
                 d = np.zeros(3)
                 d[axis] = v * span
