@@ -313,14 +313,8 @@ class VoxelHashMap:
             raise InputError(f"k must be >= 1, got {k}")
         od = np.empty((len(x), k))
         oi = np.empty((len(x), k), dtype=np.int64)
-        bound = float(distance_upper_bound)
-        max_d2 = bound * bound if np.isfinite(bound) else np.inf
-        shells = MAX_SHELLS
-        if np.isfinite(bound):
-            need = int(np.ceil(bound / self.cfg.voxel_size))
-            shells = min(max(shells, need), MAX_BOUNDED_SHELLS)
+        max_d2, shells = self._search_extent(float(distance_upper_bound))
         unresolved = np.zeros(len(x), dtype=np.bool_)
-        voxel = float(self.cfg.voxel_size)
         # a caller that keeps its numba kernels to one thread (slam.deferred) stays serial
         parallel = (
             self.cfg.threads > 1 and numba.get_num_threads() > 1 and len(x) >= PARALLEL_QUERIES
@@ -334,7 +328,7 @@ class VoxelHashMap:
                 x,
                 rows,
                 max_d2,
-                voxel,
+                float(self.cfg.voxel_size),
                 shells,
                 COARSE,
                 self._ctkeys,
@@ -353,6 +347,13 @@ class VoxelHashMap:
         if k == 1:
             return d[:, 0], oi[:, 0]
         return d, oi
+
+    def _search_extent(self, bound: float) -> tuple[float, int]:
+        """(squared distance bound m^2, voxel shells to scan) for ``distance_upper_bound``."""
+        if not np.isfinite(bound):
+            return np.inf, MAX_SHELLS
+        need = int(np.ceil(bound / self.cfg.voxel_size))
+        return bound * bound, min(max(MAX_SHELLS, need), MAX_BOUNDED_SHELLS)
 
     def _run_query(self, kernel, x, k, max_d2, shells, od, oi, unresolved) -> None:
         """One call of a voxel-shell query kernel over the hash tables."""

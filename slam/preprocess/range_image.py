@@ -158,19 +158,7 @@ class RangeImage:
         such rows are neither certified nor completed by the box search). into: a result of
         this image (with job) whose rows the searched points overwrite, the others kept."""
         n = len(self.order)
-        buf = _BUFFERS
-        if into is not None:
-            idx, dist, certified, visits, exited = (
-                into.idx, into.dist, into.certified, into.visits, into.exited
-            )  # fmt: skip
-        else:  # the arrays returned: last scan's again once the caller has dropped them
-            idx = buf.result("idx", (n, k + 1), np.int64)
-            dist = buf.result("dist", (n, k))
-            certified = buf.result("certified", (n,), np.bool_)
-            visits = buf.result("visits", (n,), np.int64)
-            exited = None if job is None else buf.result("exited", (n,), np.bool_)
-            if exited is not None:
-                exited[:] = False
+        idx, dist, certified, visits, exited = self._outputs(k, job, into)
         if not self.beams:  # not beams: the window would be slow, not wrong
             idx[:] = -1
             dist[:] = np.inf
@@ -179,6 +167,7 @@ class RangeImage:
             if exited is not None:
                 exited[:] = False
             return RangeImageKnn(idx, dist, certified, visits, exited=exited)
+        buf = _BUFFERS
         if self.in_place:
             rows = idx, dist, certified, visits
             ex_rows = exited
@@ -197,15 +186,7 @@ class RangeImage:
         # longer
         with numba.parallel_chunksize(1):
             self._search(k, max_visits, rows, job_s, exit2, _NO_EXIT if job is None else ex_rows)
-            done = False
-            if complete:
-                ok = certified[self.order] if self.in_place else rows[2]
-                if job is not None:  # rows not searched, or exited: not to complete
-                    ok = ok | (job_s == 0) | (exited[self.order] if self.in_place else ex_rows)
-                bad = np.flatnonzero(~ok)  # sorted rows
-                if len(bad) <= MAX_UNCERTIFIED * n:
-                    box_knn(self.xyz, self.order, bad, k, rows[0], rows[1], self.in_place)
-                    done = True
+            done = complete and self._complete(k, rows, certified, job, job_s, exited, ex_rows)
             if not self.in_place and job is None:
                 gather_rows(self.order, *rows, idx, dist, certified, visits)
             elif not self.in_place:  # only the rows searched (the others are not written)
@@ -215,6 +196,35 @@ class RangeImage:
                 certified[src], visits[src] = rows[2][sel], rows[3][sel]
                 exited[src] = ex_rows[sel]
         return RangeImageKnn(idx, dist, certified, visits, done, exited)
+
+    def _outputs(self, k: int, job: np.ndarray | None, into: RangeImageKnn | None) -> tuple:
+        """(idx, dist, certified, visits, exited) arrays the search writes: ``into``'s, or
+        blocks returned to the caller (last scan's again once the caller has dropped them)."""
+        if into is not None:
+            return into.idx, into.dist, into.certified, into.visits, into.exited
+        n, buf = len(self.order), _BUFFERS
+        exited = None if job is None else buf.result("exited", (n,), np.bool_)
+        if exited is not None:
+            exited[:] = False
+        return (
+            buf.result("idx", (n, k + 1), np.int64),
+            buf.result("dist", (n, k)),
+            buf.result("certified", (n,), np.bool_),
+            buf.result("visits", (n,), np.int64),
+            exited,
+        )
+
+    def _complete(self, k, rows, certified, job, job_s, exited, ex_rows) -> bool:
+        """The exact box search of the rows the window did not certify (searched rows only,
+        not exited), unless they are more than MAX_UNCERTIFIED of the scan; True when done."""
+        ok = certified[self.order] if self.in_place else rows[2]
+        if job is not None:  # rows not searched, or exited: not to complete
+            ok = ok | (job_s == 0) | (exited[self.order] if self.in_place else ex_rows)
+        bad = np.flatnonzero(~ok)  # sorted rows
+        if len(bad) > MAX_UNCERTIFIED * len(self.order):
+            return False
+        box_knn(self.xyz, self.order, bad, k, rows[0], rows[1], self.in_place)
+        return True
 
     def _sorted_job(self, job: np.ndarray) -> np.ndarray:
         job_s = _BUFFERS.get("job_s", len(self.order), np.int8)
