@@ -41,7 +41,9 @@ class FloamConfig(CommonConfig):
     two local maps. max_registration_points: above this many thinned features (dense 64-128
     beam scans: ~12k / ~18k) the ICP registers a density-aware subset of that many
     (``thin_to_count``: both voxels grown by the same factor), the maps still receive every
-    feature; 7000 would leave 16-beam scans alone (at most 6.2k on the urban drive); 0 = no cap."""
+    feature; 0 = no cap, the default (7000, which 16-beam scans never reach, moved the
+    HDL-64E urban APE 1.29 -> 1.56 cm over 60 frames, 10000 to 1.38 cm; OS-128 3.44 ->
+    3.02 cm)."""
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
     registration: FeatureIcpConfig = field(default_factory=FeatureIcpConfig)

@@ -115,7 +115,8 @@ class LegoLoamConfig(CommonConfig):
     max_surface_points: above this many ground + plane points (dense 64-128 beam scans:
     ~27k) the matching uses a density-aware subset of that many (``thin_to_count``: both
     voxels grown by the same factor; edges are all kept), the maps still receive every
-    feature; 8000 would leave 16-beam scans alone (at most ~6k on the urban drive); 0 = no cap."""
+    feature; 0 = no cap, LeGO-LOAM's default (8000 moved its HDL-64E urban APE 1.87 -> 2.35
+    cm over 60 frames, OS-128 4.57 -> 4.48 cm; LeGO-LOAM-LPB uses 8000)."""
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
