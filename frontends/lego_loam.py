@@ -22,10 +22,9 @@ import numpy as np
 from slam.errors import ConfigError
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.range_image_segmentation import Segmentation, SegmentationConfig, segment
-from slam.features.thinning import thin_to_count
+from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
 from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
 from slam.types import Scan
@@ -78,7 +77,7 @@ def lego_features(
 
     def thin(idx: np.ndarray, voxel: float) -> np.ndarray:
         pts = xyz[idx]
-        return pts[voxel_downsample(pts, voxel)] if len(pts) else pts.reshape(0, 3)
+        return pts[voxel_thin(pts, voxel)] if len(pts) else pts.reshape(0, 3)
 
     return LegoFeatures(
         ground=thin(g, cfg.ground_voxel),

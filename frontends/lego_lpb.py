@@ -34,13 +34,13 @@ from frontends.lego_loam import (
 )
 from slam.errors import ConfigError, InputError
 from slam.features.range_image_segmentation import SegmentationConfig
+from slam.features.thinning import voxel_thin
 from slam.mapping.incremental_map import IncrementalMap, IncrementalMapConfig
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import Estimate
 from slam.preprocess.dynamics import DynamicsConfig, remove_dynamic
 from slam.preprocess.ground import GroundPlane, RansacGroundConfig, fit_ground, split_ground
 from slam.preprocess.jump_outliers import JumpOutlierConfig, jump_outlier_mask
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.two_step import TwoStepConfig, plane_to_odom
 from slam.types import Scan
 
@@ -230,7 +230,7 @@ class LegoLpb(LegoLoam):
             return None
         ground = split_ground(scan.xyz, self._plane_now, cfg.ground.band)[0]
         inl = scan.xyz[self._plane_now.inliers]
-        self._residual_xyz = inl[voxel_downsample(inl, cfg.ground_voxel)]
+        self._residual_xyz = inl[voxel_thin(inl, cfg.ground_voxel)]
         return ground
 
     def _remove_dynamic(
