@@ -34,13 +34,13 @@ from frontends.lego_loam import (
 )
 from slam.errors import ConfigError, InputError
 from slam.features.range_image_segmentation import SegmentationConfig
+from slam.features.thinning import voxel_thin
 from slam.mapping.incremental_map import IncrementalMap, IncrementalMapConfig
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import Estimate
 from slam.preprocess.dynamics import DynamicsConfig, remove_dynamic
 from slam.preprocess.ground import GroundPlane, RansacGroundConfig, fit_ground, split_ground
 from slam.preprocess.jump_outliers import JumpOutlierConfig, jump_outlier_mask
-from slam.preprocess.voxel import voxel_downsample
 from slam.registration.two_step import TwoStepConfig, plane_to_odom
 from slam.types import Scan
 
@@ -91,8 +91,10 @@ class LegoLpbConfig(LegoLoamConfig):
 
     segmentation: off (the paper's preprocessing replaces LeGO's small-cluster removal).
     max_dynamic_fraction: when the dynamics block flags more than this share of a scan's
-    points as moving, none is removed (``extras["dynamic_vetoed"]`` = 1). Why both:
-    docs/paper001.md (Two-step settings)."""
+    points as moving, none is removed (``extras["dynamic_vetoed"]`` = 1).
+    max_surface_points: the density-aware subset of a dense scan's ground + plane points
+    that is matched (16-beam scans stay below it). Why: docs/paper001.md (Two-step settings)
+    and docs/speed.md."""
 
     outliers: JumpOutlierConfig = field(default_factory=JumpOutlierConfig)
     ground: GroundSection = field(default_factory=GroundSection)
@@ -101,6 +103,7 @@ class LegoLpbConfig(LegoLoamConfig):
     map: MapSection = field(default_factory=MapSection)
     registration: TwoStepConfig = field(default_factory=_lpb_registration)
     segmentation: SegmentationConfig = field(default_factory=_lpb_segmentation)
+    max_surface_points: int = 8000
 
 
 class IncrementalTarget:
@@ -220,7 +223,7 @@ class LegoLpb(LegoLoam):
             return None
         ground = split_ground(scan.xyz, self._plane_now, cfg.ground.band)[0]
         inl = scan.xyz[self._plane_now.inliers]
-        self._residual_xyz = inl[voxel_downsample(inl, cfg.ground_voxel)]
+        self._residual_xyz = inl[voxel_thin(inl, cfg.ground_voxel)]
         return ground
 
     def _remove_dynamic(

@@ -177,3 +177,18 @@ def test_dbscan_core_border_noise_and_numbering():
     assert labels[0] == 0 and labels[n] == 1  # numbered by their first core point
     assert labels[2 * n] == 0 and labels[2 * n + 1] == labels[2 * n + 2] == -1
     assert np.array_equal(dbscan(np.zeros((0, 3)), 0.4, 5), np.zeros(0))
+
+
+@pytest.mark.parametrize(("eps", "min_samples"), [(0.3, 2), (0.5, 5), (0.8, 12)])
+def test_dbscan_kernel_equals_the_numpy_reference_and_scikit_learn(eps, min_samples):
+    """The compiled union-find labelling gives the reference's labels (clumps, a sparse
+    background, border points between clumps)."""
+    from sklearn.cluster import DBSCAN
+
+    rng = np.random.default_rng(3)
+    clumps = [c + rng.normal(0, 0.3, (300, 3)) for c in rng.uniform(-6, 6, (8, 3))]
+    pts = np.vstack([*clumps, rng.uniform(-8, 8, (1500, 3))])
+    labels = dbscan(pts, eps, min_samples)
+    assert np.array_equal(labels, dbscan(pts, eps, min_samples, reference=True))
+    assert np.array_equal(labels, DBSCAN(eps=eps, min_samples=min_samples).fit_predict(pts))
+    assert labels.max() >= 1 and (labels == -1).any()

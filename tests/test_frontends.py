@@ -125,3 +125,18 @@ def test_registration_point_cap_keeps_the_corridor_accurate(corridor):
         instantiate(
             "slam.frontends", {"name": "improved_floam", "max_registration_points": -1}, "frontend"
         )
+
+
+def test_floam_registration_cap_thins_dense_scans_only():
+    """max_registration_points: off by default; when set, the ICP gets at most that many
+    features, a density-aware subset of both classes, and all of them below it."""
+    from frontends.floam import Floam, FloamConfig
+
+    rng = np.random.default_rng(0)
+    edges, planes = rng.uniform(-20, 20, (3000, 3)), rng.uniform(-20, 20, (6000, 3))
+    e, p = Floam()._registered(edges, planes)
+    assert e is edges and p is planes
+    e, p = Floam(FloamConfig(max_registration_points=6000))._registered(edges, planes)
+    assert 4000 < len(e) + len(p) <= 6000 and len(e) > 1000
+    with pytest.raises(ConfigError):
+        FloamConfig(max_registration_points=-1)

@@ -179,3 +179,26 @@ def test_degenerate_corridor_keeps_the_prediction_along_it():
     assert abs(kept[1, 3] - 0.04) < 0.005  # the walls' lateral correction
     yaw = np.degrees(np.arctan2(kept[1, 0], kept[0, 0]))
     assert abs(yaw - 0.5) < 0.05
+
+
+def test_surface_cap_thins_ground_and_planes_of_dense_scans_only():
+    """Above max_surface_points the matching gets a density-aware subset of the ground and
+    plane points (every edge kept); at or below it the features as they are."""
+    from frontends.lego_loam import LegoFeatures
+    from frontends.lego_lpb import LegoLpbConfig
+
+    rng = np.random.default_rng(0)
+    f = LegoFeatures(
+        ground=rng.uniform(-20, 20, (5000, 3)),
+        edges=rng.uniform(-20, 20, (300, 3)),
+        planes=rng.uniform(-20, 20, (4000, 3)),
+        segmented=np.zeros(0, dtype=bool),
+        seg=None,
+    )
+    assert LegoLpbConfig().max_surface_points == 8000
+    assert LegoLpb(LegoLpbConfig(max_surface_points=9000))._registered(f) is f
+    assert LegoLoam()._registered(f) is f  # LeGO-LOAM: no cap
+    r = LegoLpb(LegoLpbConfig(max_surface_points=6000))._registered(f)
+    assert r.edges is f.edges
+    assert 4000 < len(r.ground) + len(r.planes) <= 6000
+    assert len(r.ground) > 1000 and len(r.planes) > 1000

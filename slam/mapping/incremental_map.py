@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError, InputError
+from slam.registration.gicp import KnnTree
 
 
 @dataclass
@@ -105,6 +106,9 @@ class IncrementalMap:
         self._tree_version = -1
         self._tree: cKDTree | None = None
         self._tree_ids = np.zeros(0, dtype=np.int64)
+        self._knn_version = -1
+        self._knn_tree: KnnTree | None = None
+        self._knn_ids = np.zeros(0, dtype=np.int64)
 
     # ------------------------------------------------------------------ state
     def __len__(self) -> int:
@@ -322,7 +326,8 @@ class IncrementalMap:
         return np.take_along_axis(d, order, axis=1), np.take_along_axis(i, order, axis=1)
 
     def _merged_tree(self) -> tuple[cKDTree | None, np.ndarray]:
-        """The one KD-tree over the live points (index="merged"), rebuilt after a change."""
+        """The one cKDTree over the live points (index="merged"), rebuilt after a change;
+        radius queries use it."""
         if self._tree_version != self._version:
             ids = self.alive_ids()
             self._tree = (
@@ -335,14 +340,31 @@ class IncrementalMap:
             self.rebuilt_points += len(ids)
         return self._tree, self._tree_ids
 
+    def _merged_knn_tree(self) -> tuple[KnnTree | None, np.ndarray]:
+        """small_gicp's KD-tree over the live points (index="merged") for k-NN queries: the
+        same neighbours as the cKDTree at about half the query cost (a front end's maps
+        answer ~20 queries per insert), rebuilt after a change."""
+        if self._knn_version != self._version:
+            ids = self.alive_ids()
+            self._knn_tree = KnnTree(self._xyz[ids]) if len(ids) else None
+            self._knn_ids = ids
+            self._knn_version = self._version
+            self.rebuilt_points += len(ids)
+        return self._knn_tree, self._knn_ids
+
     def _merged_knn(self, q: np.ndarray, k: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
-        tree, ids = self._merged_tree()
+        tree, ids = self._merged_knn_tree()
         if tree is None:
             return np.full((len(q), k), np.inf), np.full((len(q), k), -1, dtype=np.int64)
         d, j = tree.query(q, k=k, distance_upper_bound=bound)
-        d, j = d.reshape(len(q), k), j.reshape(len(q), k)
+        j = j.reshape(len(q), k)
         found = j < len(ids)
-        return np.where(found, d, np.inf), np.where(found, ids[np.minimum(j, len(ids) - 1)], -1)
+        out = np.where(found, ids[np.minimum(j, len(ids) - 1)], -1)
+        # the distances as cKDTree rounds them (x, y, z squares summed in order), so that
+        # the answers equal a rebuilt cKDTree's to the bit
+        diff = q[:, None, :] - self._xyz[np.maximum(out, 0)]
+        exact = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2 + diff[..., 2] ** 2)
+        return np.where(found, exact, np.inf), out
 
     def radius(
         self, queries: np.ndarray, r: float, *, return_distances: bool = False

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError
-from slam.registration.neighbours import _workers
+from slam.registration.neighbours import KnnTree, _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
 from slam.registration.se3 import transform
 from slam.registration.solver import solve_weighted
@@ -60,6 +60,24 @@ class FeatureTarget:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+class MapTreeCache:
+    """A local map (``points`` (M, 3) view, ``version`` counting its changes) as a
+    FeatureTarget whose KD-tree is rebuilt only when the map changed: small_gicp's
+    (``gicp.KnnTree``: the same neighbours as a cKDTree at about half the query cost; a
+    front end queries each map 8-20 times per insert)."""
+
+    def __init__(self) -> None:
+        self._version = -1
+        self._tree: KnnTree | None = None
+
+    def target(self, local_map) -> FeatureTarget:
+        if self._version != local_map.version:
+            pts = local_map.points
+            self._tree = KnnTree(pts) if len(pts) else None
+            self._version = local_map.version
+        return FeatureTarget(local_map.points, self._tree)
 
 
 class _Neighbourhoods:

@@ -138,7 +138,61 @@ class MapTarget(Protocol):
 Target = FeatureTarget | MapTarget
 
 
-def _knn(moved: np.ndarray, target: Target | None, cfg: TwoStepConfig):
+class NeighbourCache:
+    """Analyses (centroid, eigen-decomposition) of the k-NN map neighbourhoods of one point
+    set, kept between the matcher's iterations: a point whose neighbours (coordinates, in
+    order) did not change since it was last analysed keeps its analysis instead of a new
+    eigh (the same numbers; near the optimum most points keep their neighbours, and the
+    dense scans' ~27k surface points are re-associated 10-30 times per frame)."""
+
+    def __init__(self) -> None:
+        self._sets: dict[int, tuple[np.ndarray, tuple[np.ndarray, ...]]] = {}
+
+    def analyse(self, pts: np.ndarray, ok: np.ndarray, nb: np.ndarray):
+        """(c, w, V, centred) of the neighbourhoods ``nb`` (n_ok, k, 3) of the rows ``ok``
+        (N,) bool of the point set ``pts`` (N, 3)."""
+        key = id(pts)
+        held = self._sets.get(key)
+        if held is None or held[0] is not pts:
+            n, k = len(pts), nb.shape[1]
+            held = (
+                pts,
+                (
+                    np.full((n, k, 3), np.nan),
+                    np.zeros((n, 3)),
+                    np.zeros((n, 3)),
+                    np.zeros((n, 3, 3)),
+                    np.zeros((n, k, 3)),
+                ),
+            )
+            self._sets[key] = held
+        last, c_all, w_all, V_all, cen_all = held[1]
+        rows = np.flatnonzero(ok)
+        new = np.any(nb != last[rows], axis=(1, 2))
+        if new.any():
+            r, nbn = rows[new], nb[new]
+            c, centred, w, V = _analysis(nbn)
+            last[r], c_all[r], cen_all[r], w_all[r], V_all[r] = nbn, c, centred, w, V
+        return c_all[rows], w_all[rows], V_all[rows], cen_all[rows]
+
+
+def _analysis(nb: np.ndarray):
+    """Centroids, centred points and eigen-decomposition (ascending) of neighbourhoods
+    nb (n, k, 3)."""
+    k = nb.shape[1]
+    c = nb.mean(axis=1)
+    centred = nb - c[:, None, :]
+    w, V = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
+    return c, centred, w, V
+
+
+def _knn(
+    moved: np.ndarray,
+    target: Target | None,
+    cfg: TwoStepConfig,
+    cache: NeighbourCache | None = None,
+    pts: np.ndarray | None = None,
+):
     k = cfg.k_neighbors
     if target is None or len(target) < k or len(moved) == 0:
         return None
@@ -155,18 +209,24 @@ def _knn(moved: np.ndarray, target: Target | None, cfg: TwoStepConfig):
         d, nb = target.neighbours(moved, k, max_distance=bound)
         ok = d[:, -1] < bound
         nb = nb[ok]
-    c = nb.mean(axis=1)
-    centred = nb - c[:, None, :]
-    w, V = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
+    if cache is not None and pts is not None:
+        c, w, V, centred = cache.analyse(pts, ok, nb)
+    else:
+        c, centred, w, V = _analysis(nb)
     return ok, c, w, V, centred
 
 
 def edge_terms(
-    T: np.ndarray, pts: np.ndarray, target: FeatureTarget | None, cfg: TwoStepConfig
+    T: np.ndarray,
+    pts: np.ndarray,
+    target: FeatureTarget | None,
+    cfg: TwoStepConfig,
+    cache: NeighbourCache | None = None,
 ) -> Terms:
-    """Point-to-line residuals of edge points ``pts`` (sensor frame) at pose T."""
+    """Point-to-line residuals of edge points ``pts`` (sensor frame) at pose T; ``cache``
+    keeps the neighbourhood analyses of ``pts`` between calls."""
     moved = transform(T, pts)
-    nh = _knn(moved, target, cfg)
+    nh = _knn(moved, target, cfg, cache, pts)
     if nh is None:
         return Terms.empty()
     ok, c, w, V, _ = nh
@@ -181,11 +241,16 @@ def edge_terms(
 
 
 def plane_terms(
-    T: np.ndarray, pts: np.ndarray, target: FeatureTarget | None, cfg: TwoStepConfig
+    T: np.ndarray,
+    pts: np.ndarray,
+    target: FeatureTarget | None,
+    cfg: TwoStepConfig,
+    cache: NeighbourCache | None = None,
 ) -> Terms:
-    """Point-to-plane residuals of plane points ``pts`` (sensor frame) at pose T."""
+    """Point-to-plane residuals of plane points ``pts`` (sensor frame) at pose T; ``cache``
+    keeps the neighbourhood analyses of ``pts`` between calls."""
     moved = transform(T, pts)
-    nh = _knn(moved, target, cfg)
+    nh = _knn(moved, target, cfg, cache, pts)
     if nh is None:
         return Terms.empty()
     ok, c, w, V, centred = nh
@@ -322,20 +387,21 @@ def _two_steps(
     plane_map: Target | None,
     ground_plane: tuple[np.ndarray, float] | None,
     cfg: TwoStepConfig,
+    cache: NeighbourCache | None = None,
 ) -> np.ndarray:
     """T after LeGO-LOAM's two restricted steps: [roll, pitch, z] from the ground points on
     the plane map (+ E_ground when ``ground_plane`` is given), then [yaw, x, y] from the
     edges on the edge map (section III-D)."""
 
     def step1(T_: np.ndarray) -> Terms:
-        parts = [plane_terms(T_, ground, plane_map, cfg)]
+        parts = [plane_terms(T_, ground, plane_map, cfg, cache)]
         if ground_plane is not None:
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         return Terms.join(parts)
 
     T, _ = solve_restricted(T, step1, GROUND_DOF, cfg.step_iterations)
     T, _ = solve_restricted(
-        T, lambda T_: edge_terms(T_, edges, edge_map, cfg), EDGE_DOF, cfg.step_iterations
+        T, lambda T_: edge_terms(T_, edges, edge_map, cfg, cache), EDGE_DOF, cfg.step_iterations
     )
     return T
 
@@ -350,12 +416,16 @@ def _refine(
     ground_plane: tuple[np.ndarray, float] | None,
     n_src: int,
     cfg: TwoStepConfig,
+    cache: NeighbourCache | None = None,
 ) -> RegistrationResult:
     """The 6-DoF refinement from T: E = E_edge + E_plane (+ E_ground when ``ground_plane`` is
     given), the energy of 3.3, by ``solve_weighted``."""
 
     def associate(T_: np.ndarray):
-        parts = [edge_terms(T_, edges, edge_map, cfg), plane_terms(T_, surf, plane_map, cfg)]
+        parts = [
+            edge_terms(T_, edges, edge_map, cfg, cache),
+            plane_terms(T_, surf, plane_map, cfg, cache),
+        ]
         if ground_plane is not None:
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         tm = Terms.join(parts)
@@ -409,10 +479,11 @@ def two_step_align(
         else _check_points(ground_residual_xyz, "E_ground points")
     )
     T_start = T.copy()
+    cache = NeighbourCache()
     if cfg.two_step and cfg.step_iterations > 0:
-        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg)
+        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache)
     surf = np.concatenate([ground, planes])
-    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg)
+    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache)
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
     return res
