@@ -15,8 +15,11 @@ of +- ``search_m`` m (growing with the path between the two, up to ``max_search_
 +- ``search_deg``, then refined by PLICP. An edge is kept when the search is unique (second
 peak / best <= ``max_uniqueness``: corridors are ambiguous), PLICP stays within two search
 cells of it, and ``min_inliers`` of the overlapping target points lie on the reference.
-Loop edges carry a Cauchy kernel; the graph is optimised (Levenberg-Marquardt on gtsam
-Pose2) after each visit that added one.
+A verified edge enters the graph only once an independent edge nearby agrees with it
+through the front end's relative poses (``PairwiseCheck``: an aliased match rarely repeats
+itself consistently). Loop edges carry a Cauchy kernel and are switched off beyond
+``gate_sigma`` claimed sigmas at the result; the graph is optimised (Levenberg-Marquardt on
+gtsam Pose2) after each visit that added one.
 
 ``VisitGraph`` is the incremental core; ``VisitGraph.scan_poses`` gives every scan's pose
 (its visit's optimised pose o its front-end pose relative to the visit's vertex).
@@ -514,6 +517,8 @@ def scan_poses(
 
 
 __all__ = [
+    "PairwiseCheck",
+    "VerifiedLoop",
     "VisitGraph",
     "VisitGraphConfig",
     "line_reference",
