@@ -8,6 +8,11 @@ trajectories of ``icp2d``, ``dpcr2d``'s front end alone (``odometry.tum``), ``dp
   1 / 2 m of path apart registered alone and verified, made once per log and prefix,
   cached as ``<out>/<log>_<frames>.relations``): a graph that worsens the local geometry
   the scans show is caught on every log;
+- the log's revisit relations (``slam.eval.self_relations.revisit_relations``: a scan and
+  the same place seen again at least 10 m of path later, proposed by the wheel odometry
+  and every trajectory of the bench, registered from the two scans alone and verified,
+  cached as ``<out>/<log>_<frames>_revisit.relations``): the long-range errors a wrong
+  loop edge or drift around a loop makes, which short relations cannot see;
 - published relations where given (``--relations intel=FILE``, Freiburg format).
 
 Printed: per log and trajectory the relation count and translation mean / std / median /
@@ -29,7 +34,7 @@ import numpy as np
 from slam.config import load_config
 from slam.eval.metrics import read_trajectory
 from slam.eval.relations import read_relations, relation_errors, write_relations
-from slam.eval.self_relations import SelfRelationConfig, self_relations
+from slam.eval.self_relations import SelfRelationConfig, revisit_relations, self_relations
 from slam.io.carmen import CarmenSource
 from slam.run import run_one
 
@@ -71,6 +76,29 @@ def log_relations(log: Path, frames: int | None, out: Path) -> tuple[Path, dict]
     return path, info
 
 
+def log_revisits(log: Path, frames: int | None, out: Path, trajs: list[Path]) -> tuple[Path, dict]:
+    """The log's revisit relations, proposed by the wheels and ``trajs`` (made once)."""
+    path = out / f"{log.name.split('.')[0]}_{frames or 'all'}_revisit.relations"
+    meta = path.with_suffix(".json")
+    if path.is_file() and meta.is_file():
+        return path, json.loads(meta.read_text())
+    stamps, scans, odom = load_log(log, frames)
+    proposers = [odom]
+    for traj in trajs:
+        st, T = read_trajectory(traj)
+        k = np.clip(np.searchsorted(st, stamps), 0, len(st) - 1)
+        proposers.append(np.column_stack([T[k, 0, 3], T[k, 1, 3],
+                                          np.arctan2(T[k, 1, 0], T[k, 0, 0])]))  # fmt: skip
+    t = time.process_time()
+    rel, stats = revisit_relations(stamps, scans, odom, proposers)
+    info = {"scans": len(stamps), "pairs": stats.pairs, "kept": stats.kept,
+            "rejected": stats.rejected, "cpu_s": time.process_time() - t,
+            "proposed_by": ["wheels"] + [str(p) for p in trajs]}  # fmt: skip
+    write_relations(path, rel, header=f"revisit relations of {log.name}: {info}")
+    meta.write_text(json.dumps(info, indent=2))
+    return path, info
+
+
 def score(traj: Path, relations: Path) -> dict:
     stamps, poses = read_trajectory(traj)
     summary = relation_errors(stamps, poses, read_relations(relations), max_dt=1e-3).summary()
@@ -98,18 +126,21 @@ def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> l
     print(f"{log}: {info['kept']} self relations of {info['pairs']} pairs ({info['rejected']})")
     sets = {"published": published[log]} if log in published else {}
     sets["self"] = rel
-    rows = []
+    runs = []
     for method in args.methods:
         run_dir = base / log / method
         bench = run_method(method, path, run_dir, args.frames, args.set or [])
-        trajs = [(method, run_dir / "trajectory.tum")]
-        if method.startswith("dpcr2d") and not any(r["trajectory"] == "dpcr2d front end"
-                                                   for r in rows):  # fmt: skip
-            trajs.insert(0, ("dpcr2d front end", run_dir / "odometry.tum"))
-        for name, traj in trajs:
-            for kind, rel_path in sets.items():
-                rows.append({"log": log, "trajectory": name, "relations": kind, **bench,
-                             **score(traj, rel_path)})  # fmt: skip
+        if method.startswith("dpcr2d") and not any(r[0] == "dpcr2d front end" for r in runs):
+            runs.append(("dpcr2d front end", run_dir / "odometry.tum", bench))
+        runs.append((method, run_dir / "trajectory.tum", bench))
+    rev, rev_info = log_revisits(path, args.frames, base, [r[1] for r in runs])
+    print(f"{log}: {rev_info['kept']} revisit relations of {rev_info['pairs']} pairs")
+    sets["revisit"] = rev
+    rows = []
+    for name, traj, bench in runs:
+        for kind, rel_path in sets.items():
+            rows.append({"log": log, "trajectory": name, "relations": kind, **bench,
+                         **score(traj, rel_path)})  # fmt: skip
     return rows
 
 

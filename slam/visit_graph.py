@@ -15,8 +15,11 @@ of +- ``search_m`` m (growing with the path between the two, up to ``max_search_
 +- ``search_deg``, then refined by PLICP. An edge is kept when the search is unique (second
 peak / best <= ``max_uniqueness``: corridors are ambiguous), PLICP stays within two search
 cells of it, and ``min_inliers`` of the overlapping target points lie on the reference.
-Loop edges carry a Cauchy kernel; the graph is optimised (Levenberg-Marquardt on gtsam
-Pose2) after each visit that added one.
+A verified edge enters the graph only once an independent edge nearby agrees with it
+through the front end's relative poses (``PairwiseCheck``: an aliased match rarely repeats
+itself consistently). Loop edges carry a Cauchy kernel and are switched off beyond
+``gate_sigma`` claimed sigmas at the result; the graph is optimised (Levenberg-Marquardt on
+gtsam Pose2) after each visit that added one.
 
 ``VisitGraph`` is the incremental core; ``VisitGraph.scan_poses`` gives every scan's pose
 (its visit's optimised pose o its front-end pose relative to the visit's vertex).
@@ -70,7 +73,14 @@ class VisitGraphConfig:
     within ``inlier_m`` after it; refine_sigma_m / refine_sigma_deg: noise of the
     registration, split over the reference visits (an edge to each, sigma * sqrt(n));
     gate_sigma / gate_rounds: loop edges beyond this many claimed sigmas at the result are
-    switched off and the graph re-optimised (``slam.graph2d_gate``; 0: Cauchy only)."""
+    switched off and the graph re-optimised (``slam.graph2d_gate``; 0: Cauchy only);
+    pair_window (visits, 0: off): a verified loop edge enters the graph only once another
+    one, independent of it (another new visit, or old visits whose references share no
+    cloud), whose new visit lies within this many visits agrees with it through the front
+    end's relative poses: the cycle of the two edges and the two stretches of front end
+    between them closes within pair_m + pair_ratio * travelled (m) and pair_deg +
+    pair_ratio_deg * travelled (deg), travelled the path of the two stretches (m), and
+    no more confirmed edges nearby contradict it than agree (``PairwiseCheck``)."""
 
     visit_scans: int = 30
     pad: int = 15
@@ -108,8 +118,15 @@ class VisitGraphConfig:
     refine_sigma_deg: float = 1.0
     gate_sigma: float = 4.0
     gate_rounds: int = 3
+    pair_window: int = 4
+    pair_m: float = 0.2
+    pair_ratio: float = 0.02
+    pair_deg: float = 1.5
+    pair_ratio_deg: float = 0.1
 
     def __post_init__(self) -> None:
+        if self.pair_window < 0 or min(self.pair_m, self.pair_deg) <= 0:
+            raise ConfigError("visit_graph: pair_window >= 0, pair_m and pair_deg > 0")
         if self.visit_scans < 1 or self.pad < 0 or self.max_candidates < 0:
             raise ConfigError("visit_graph: visit_scans >= 1, pad >= 0, max_candidates >= 0")
         if self.refine_rounds < 0 or self.refine_refs < 1:
@@ -147,6 +164,86 @@ def visit_cloud(
     return grid.obstacle_points()
 
 
+@dataclass(eq=False)
+class VerifiedLoop:
+    """A verified loop edge old -> new (z: new in old's frame), waiting for a partner."""
+
+    old: int
+    new: int
+    z: np.ndarray
+    confirmed: bool = False
+    expired: bool = False
+
+
+class PairwiseCheck:
+    """Pairwise consistency of loop edges through the front end (Mangelson et al. 2018,
+    eq. 5; the 2D form of ``slam.loop.consistency``): two edges (a1 -> b1, z1) and
+    (a2 -> b2, z2) both give b2 in a1's frame, z1 o D_b and D_a o z2 with D the front end's
+    relative pose between a1, a2 (old pass) and b1, b2 (new pass). A wrong edge (an
+    aliased match) rarely agrees with an independent one; see ``VisitGraphConfig``."""
+
+    def __init__(self, cfg: VisitGraphConfig, fe: dict, path: dict):
+        self.cfg, self.fe, self.path = cfg, fe, path
+        self.loops: list[VerifiedLoop] = []
+        self.expired = 0
+
+    def cycle(self, l1: VerifiedLoop, l2: VerifiedLoop) -> tuple[float, float, float]:
+        """(translation m, rotation deg, travelled m) of the cycle of two edges."""
+        fe = self.fe
+        d_a = compose2d(inverse2d(fe[l1.old]), fe[l2.old])
+        d_b = compose2d(inverse2d(fe[l1.new]), fe[l2.new])
+        err = compose2d(inverse2d(compose2d(d_a, l2.z)), compose2d(l1.z, d_b))
+        travelled = abs(self.path[l1.old] - self.path[l2.old]) + abs(
+            self.path[l1.new] - self.path[l2.new]
+        )
+        return float(np.hypot(err[0], err[1])), float(abs(np.degrees(wrap(err[2])))), travelled
+
+    def consistent(self, l1: VerifiedLoop, l2: VerifiedLoop) -> bool:
+        c = self.cfg
+        t, r, d = self.cycle(l1, l2)
+        return t <= c.pair_m + c.pair_ratio * d and r <= c.pair_deg + c.pair_ratio_deg * d
+
+    def independent(self, l1: VerifiedLoop, l2: VerifiedLoop) -> bool:
+        """Another new visit, or old references that share no visit's cloud."""
+        return l1.new != l2.new or abs(l1.old - l2.old) > 2 * self.cfg.ref_visits
+
+    def add(self, loop: VerifiedLoop) -> list[VerifiedLoop]:
+        """Take a verified edge; returns the edges it confirms (itself and / or waiting
+        partners). Edges of new visits more than ``pair_window`` back expire unconfirmed."""
+        w = self.cfg.pair_window
+        if w <= 0:
+            loop.confirmed = True
+            return [loop]
+        for m in self.loops:
+            if not m.confirmed and not m.expired and m.new < loop.new - w:
+                m.expired = True
+                self.expired += 1
+        near = [m for m in self.loops if not m.expired and abs(m.new - loop.new) <= w
+                and self.independent(loop, m)]  # fmt: skip
+        agree = [m for m in near if self.consistent(loop, m)]
+        self.loops.append(loop)
+        if not agree or not self._wins(near, agree):
+            return []
+        loop.confirmed = True
+        out = [loop]
+        for m in agree:
+            if m.confirmed:
+                continue
+            m_near = [x for x in self.loops if x is not m and not x.expired
+                      and abs(x.new - m.new) <= w and self.independent(m, x)]  # fmt: skip
+            m_agree = [x for x in m_near if x is loop or self.consistent(m, x)]
+            if self._wins(m_near, m_agree):
+                m.confirmed = True
+                out.append(m)
+        return out
+
+    @staticmethod
+    def _wins(near: list[VerifiedLoop], agree: list[VerifiedLoop]) -> bool:
+        ids = {id(m) for m in agree}
+        against = sum(1 for m in near if m.confirmed and id(m) not in ids)
+        return sum(1 for m in agree if m.confirmed) >= against
+
+
 class VisitLoops:
     """The loop search over visits, apart from any graph: each visit's front-end pose,
     cloud and path length; ``search(i, estimate)`` examines the candidates of visit ``i``
@@ -162,6 +259,7 @@ class VisitLoops:
         self.order: list[int] = []
         self.events: list[LoopEvent] = []
         self.search_ms: list[float] = []
+        self.pairs = PairwiseCheck(self.cfg, self.fe, self.path)
 
     def add(self, i: int, fe_pose: np.ndarray, cloud: np.ndarray) -> None:
         fe_pose = np.asarray(fe_pose, dtype=np.float64)
@@ -193,6 +291,17 @@ class VisitLoops:
         return ref
 
     def search(self, i: int, estimate) -> tuple[list[tuple[int, int, np.ndarray]], list[LoopEvent]]:
+        """The loop edges (old, new, z) confirmed by visit ``i``'s candidates (``pair_window``:
+        edges of earlier visits a partner now confirms among them) and its events."""
+        verified, events = self.verify(i, estimate)
+        edges = []
+        for j, k, z in verified:
+            for m in self.pairs.add(VerifiedLoop(j, k, z)):
+                edges.append((m.old, m.new, m.z))
+        return edges, events
+
+    def verify(self, i: int, estimate) -> tuple[list[tuple[int, int, np.ndarray]], list[LoopEvent]]:
+        """Visit ``i``'s loop candidates searched and verified, before the pairwise check."""
         c = self.cfg
         X_i = np.asarray(estimate(i), dtype=np.float64)
         pos_i = len(self.order) - 1 if self.order[-1] == i else self.order.index(i)
@@ -408,6 +517,8 @@ def scan_poses(
 
 
 __all__ = [
+    "PairwiseCheck",
+    "VerifiedLoop",
     "VisitGraph",
     "VisitGraphConfig",
     "line_reference",

@@ -170,10 +170,99 @@ def self_relations(
     return Relations(np.array(ti), np.array(tj), poses), stats
 
 
+@dataclass
+class RevisitRelationConfig:
+    """Long-range relations between a scan and the same place seen again later.
+
+    every: a relation may start at every this many scans; min_path (m): the second scan
+    is at least this much wheel-odometry path later (a revisit, not the next metres);
+    radius (m) / max_turn_deg: a proposing trajectory puts the two scans this close and
+    this alike in heading; per_scan: revisits kept per first scan (nearest first, one
+    scan per revisit: revisits are told apart by ``min_path`` of path between them);
+    pair: the registration and its checks (``register_pair``), here over a window of
+    ``pair.search_m`` / ``pair.search_deg`` around the proposing trajectory's guess."""
+
+    every: int = 10
+    min_path: float = 10.0
+    radius: float = 2.0
+    max_turn_deg: float = 60.0
+    per_scan: int = 2
+    pair: SelfRelationConfig = field(
+        default_factory=lambda: SelfRelationConfig(search_m=1.0, search_deg=15.0)
+    )
+
+    def __post_init__(self) -> None:
+        if self.every < 1 or self.per_scan < 1 or self.min_path <= 0 or self.radius <= 0:
+            raise ConfigError("revisit relations: every, per_scan >= 1; min_path, radius > 0")
+
+
+def revisit_pairs(
+    odom: np.ndarray, trajectories: list[np.ndarray], cfg: RevisitRelationConfig
+) -> list[tuple[int, int, np.ndarray]]:
+    """Candidate revisits (i, j, guess of j in i's frame): for every ``every``-th scan i,
+    the scans j at least ``min_path`` of wheel path later that one of ``trajectories``
+    (each (K, 3), x y theta per scan) places within ``radius`` and ``max_turn_deg``; per
+    trajectory the nearest scan of each revisit, the nearest ``per_scan`` revisits."""
+    step = np.linalg.norm(np.diff(np.asarray(odom)[:, :2], axis=0), axis=1)
+    path = np.concatenate([[0.0], np.cumsum(step)])
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for traj in trajectories:
+        traj = np.asarray(traj, dtype=np.float64)
+        for i in range(0, len(traj), cfg.every):
+            later = np.flatnonzero(path >= path[i] + cfg.min_path)
+            if not len(later):
+                break
+            d = np.linalg.norm(traj[later, :2] - traj[i, :2], axis=1)
+            turn = np.abs(np.degrees(wrap(traj[later, 2] - traj[i, 2])))
+            near = later[(d <= cfg.radius) & (turn <= cfg.max_turn_deg)]
+            if not len(near):
+                continue
+            # revisits: runs of near scans split where the path between exceeds min_path
+            cut = np.flatnonzero(np.diff(path[near]) > cfg.min_path) + 1
+            best = []
+            for run in np.split(near, cut):
+                dr = np.linalg.norm(traj[run, :2] - traj[i, :2], axis=1)
+                best.append((float(dr.min()), int(run[np.argmin(dr)])))
+            for _, j in sorted(best)[: cfg.per_scan]:
+                out.setdefault((i, j), compose2d(inverse2d(traj[i]), traj[j]))
+    return [(i, j, g) for (i, j), g in sorted(out.items())]
+
+
+def revisit_relations(
+    stamps: np.ndarray,
+    scans: list[np.ndarray],
+    odom: np.ndarray,
+    trajectories: list[np.ndarray],
+    cfg: RevisitRelationConfig | None = None,
+) -> tuple[Relations, SelfRelationStats]:
+    """Long-range verified relations of a log: revisits proposed by ``trajectories`` (any
+    estimates, each (K, 3) per scan; their union, so that no one of them chooses the
+    places it is scored on), each registered from its scans alone and checked as the
+    short relations are (``register_pair``: unique in the window, peak inside it, overlap,
+    inliers, both directions agree). A trajectory that a wrong loop edge bends or that
+    drifts over a loop is caught where the place is seen again."""
+    cfg = cfg or RevisitRelationConfig()
+    stats = SelfRelationStats()
+    ti, tj, rel = [], [], []
+    for i, j, guess in revisit_pairs(odom, trajectories, cfg):
+        stats.pairs += 1
+        a, b = _clip(scans[i], cfg.pair.max_range), _clip(scans[j], cfg.pair.max_range)
+        pose, why = register_pair(a, b, guess, cfg.pair)
+        if pose is None:
+            stats.reject(why)
+            continue
+        stats.kept += 1
+        ti.append(stamps[i])
+        tj.append(stamps[j])
+        rel.append(pose2_to_matrix(pose))
+    poses = np.array(rel).reshape(-1, 4, 4)
+    return Relations(np.array(ti), np.array(tj), poses), stats
+
+
 def _clip(pts: np.ndarray, max_range: float) -> np.ndarray:
     pts = np.asarray(pts, dtype=np.float64)[:, :2]
     return pts[np.linalg.norm(pts, axis=1) <= max_range]
 
 
-__all__ = ["SelfRelationConfig", "SelfRelationStats", "pair_indices", "register_pair",
-           "self_relations"]  # fmt: skip
+__all__ = ["RevisitRelationConfig", "SelfRelationConfig", "SelfRelationStats", "pair_indices",
+           "register_pair", "revisit_pairs", "revisit_relations", "self_relations"]  # fmt: skip
