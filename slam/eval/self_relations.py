@@ -153,12 +153,24 @@ def self_relations(
     counts of pairs examined, kept and rejected by reason."""
     cfg = cfg or SelfRelationConfig()
     odom = np.asarray(odom, dtype=np.float64)
+    pairs = [
+        (i, j, compose2d(inverse2d(odom[i]), odom[j]))
+        for i, j in zip(*pair_indices(odom, cfg), strict=True)
+    ]
+    return _registered(stamps, scans, pairs, cfg)
+
+
+def _registered(
+    stamps: np.ndarray, scans: list[np.ndarray], pairs: list, cfg
+) -> tuple[Relations, SelfRelationStats]:
+    """The pairs (i, j, guess) that ``register_pair`` verifies, as relations, with the
+    counts of pairs examined, kept and rejected by reason."""
     stats = SelfRelationStats()
     ti, tj, rel = [], [], []
-    for i, j in zip(*pair_indices(odom, cfg), strict=True):
+    for i, j, guess in pairs:
         stats.pairs += 1
         a, b = _clip(scans[i], cfg.max_range), _clip(scans[j], cfg.max_range)
-        pose, why = register_pair(a, b, compose2d(inverse2d(odom[i]), odom[j]), cfg)
+        pose, why = register_pair(a, b, guess, cfg)
         if pose is None:
             stats.reject(why)
             continue
@@ -242,21 +254,7 @@ def revisit_relations(
     inliers, both directions agree). A trajectory that a wrong loop edge bends or that
     drifts over a loop is caught where the place is seen again."""
     cfg = cfg or RevisitRelationConfig()
-    stats = SelfRelationStats()
-    ti, tj, rel = [], [], []
-    for i, j, guess in revisit_pairs(odom, trajectories, cfg):
-        stats.pairs += 1
-        a, b = _clip(scans[i], cfg.pair.max_range), _clip(scans[j], cfg.pair.max_range)
-        pose, why = register_pair(a, b, guess, cfg.pair)
-        if pose is None:
-            stats.reject(why)
-            continue
-        stats.kept += 1
-        ti.append(stamps[i])
-        tj.append(stamps[j])
-        rel.append(pose2_to_matrix(pose))
-    poses = np.array(rel).reshape(-1, 4, 4)
-    return Relations(np.array(ti), np.array(tj), poses), stats
+    return _registered(stamps, scans, revisit_pairs(odom, trajectories, cfg), cfg.pair)
 
 
 def _clip(pts: np.ndarray, max_range: float) -> np.ndarray:
