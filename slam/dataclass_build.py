@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 import types
 import typing
 import warnings
 from typing import Any
 
 from slam.errors import ConfigError
+
+# a number in exponent form without a dot (1e-3), which YAML 1.1 leaves a string
+_FLOAT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
 
 
 class ConfigDeprecationWarning(FutureWarning):
@@ -64,6 +68,8 @@ def _coerce(value: Any, tp: Any, where: str, base: Any = None) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str) and _FLOAT.fullmatch(value.strip()):
+            return float(value)  # YAML 1.1 reads 1e-3 (no dot) as a string
         raise ConfigError(f"{where}: expected a number, got {value!r}")
     if tp is int:
         if isinstance(value, int) and not isinstance(value, bool):

@@ -36,6 +36,13 @@ def test_build_nested_with_coercion():
     assert cfg.flag is True and cfg.topic is None
 
 
+def test_exponent_without_dot_is_a_number():
+    """YAML 1.1 leaves 1e-3 a string; a float field still reads it as 0.001."""
+    cfg = build_dataclass(Outer, {"inner": {"alpha": "1e-3"}}, "x")
+    assert cfg.inner.alpha == pytest.approx(0.001)
+    assert build_dataclass(Outer, {"inner": {"alpha": "-2.5E2"}}, "x").inner.alpha == -250.0
+
+
 def test_unknown_key_lists_valid_keys():
     with pytest.raises(ConfigError) as err:
         build_dataclass(Outer, {"inner": {"kk": 3}}, "frontend")
@@ -50,6 +57,7 @@ def test_unknown_key_lists_valid_keys():
         ({"flag": "yes"}, "true/false"),
         ({"name": 3}, "expected a string"),
         ({"inner": 5}, "expected a mapping"),
+        ({"inner": {"alpha": "1e"}}, "expected a number"),
     ],
 )
 def test_bad_types_are_errors(data, fragment):
