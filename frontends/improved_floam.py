@@ -285,7 +285,7 @@ class ImprovedFloam(ScanToMapFrontend):
         covs = estimate_covariances(
             xyz[ref_idx],
             rc.k_covariance,
-            rc.lambda_reg,
+            rc.regularisation,
             rc.covariance_mode,
             query=src if rows is None else src[rows],
             plane_epsilon=rc.plane_epsilon,
@@ -387,7 +387,7 @@ class ImprovedFloam(ScanToMapFrontend):
         return estimate_covariances(
             pts,
             rc.k_covariance,
-            rc.lambda_reg,
+            rc.regularisation,
             rc.covariance_mode,
             query=pts[rows],
             plane_epsilon=rc.plane_epsilon,

@@ -15,6 +15,7 @@ from slam.registration.gicp import (
     _linearise,
     estimate_covariances,
     gicp_align,
+    robust_weights,
     se3_exp,
     solve_weighted,
     transform,
@@ -250,12 +251,20 @@ def test_gicp_real_hdl32_pair():
     tgt = tgt[voxel_downsample(tgt, 0.1)]
     # Segal's plane covariances without the Mahalanobis gate (with it: 0.63 cm / 0.154 deg,
     # inside the 0.3 deg the standard aligners spread around this reference)
-    res = gicp_align(src, tgt, np.eye(4), GicpConfig(covariance_mode="plane", outlier_ratio=0))
+    plane = GicpConfig(covariance_mode="plane", point_noise=0.0, robust_scale=0.0)
+    res = gicp_align(src, tgt, np.eye(4), plane)
     t_err, r_err = pose_error(res.T_target_source, T_ref)
     assert t_err < 0.02 and r_err < 0.1, (t_err, r_err)
-    # raw eq. (1) covariances with the gate at 1000 x the median (opt-in) from 0.49 m off: the
+    # eq. (1) as printed with the gate at 1000 x the median (opt-in) from 0.49 m off: the
     # gate must not drop the pairs that carry the correction (at 100 x it stopped 43 cm off)
-    res = gicp_align(src, tgt, np.eye(4), GicpConfig(outlier_ratio=1000.0))
+    res = gicp_align(
+        src, tgt, np.eye(4), GicpConfig(point_noise=0.0, robust_scale=0.0, outlier_ratio=1000.0)
+    )
+    t_err, r_err = pose_error(res.T_target_source, T_ref)
+    assert t_err < 0.01 and r_err < 0.2, (t_err, r_err)
+    # the defaults (1 cm point noise, Geman-McClure weights): 0.8 cm / 0.15 deg; the point
+    # noise without the weights stops 3.8 cm off (eq. (1) as printed: 1.4 cm)
+    res = gicp_align(src, tgt, np.eye(4), GicpConfig())
     t_err, r_err = pose_error(res.T_target_source, T_ref)
     assert t_err < 0.01 and r_err < 0.2, (t_err, r_err)
 
@@ -301,15 +310,43 @@ def test_outlier_pairs_of_another_surface_do_not_pull_the_solution():
     tgt = GicpTarget.from_points(target)
     init = np.eye(4)
     init[:3, 3] = [0.02, -0.01, 0.02]
-    plain = gicp_align(source, tgt, init, GicpConfig(outlier_ratio=0.0))
+    printed = {"point_noise": 0.0, "robust_scale": 0.0}  # eq. (1) as printed, no weights
+    tgt = GicpTarget.from_points(target, GicpConfig(**printed))
+    plain = gicp_align(source, tgt, init, GicpConfig(**printed))
     t, r = pose_error(plain.T_target_source, np.eye(4))
     assert t > 0.05 and r > 0.5  # the failure this guards against
     for ratio in (100.0, 1000.0):
         for reference in (False, True):
-            cfg = GicpConfig(outlier_ratio=ratio)
+            cfg = GicpConfig(outlier_ratio=ratio, **printed)
             res = gicp_align(source, tgt, init, cfg, reference=reference)
             t, r = pose_error(res.T_target_source, np.eye(4))
             assert t < 0.002 and r < 0.02
             assert res.num_inliers == 4000  # exactly the roof's 20 pairs left out
     with pytest.raises(ConfigError):
         GicpConfig(outlier_ratio=0.5)
+    # the defaults: the roof's pairs claim no more than the 1 cm point noise and the
+    # Geman-McClure weights take the rest of their pull away
+    for reference in (False, True):
+        res = gicp_align(source, GicpTarget.from_points(target), init, reference=reference)
+        t, r = pose_error(res.T_target_source, np.eye(4))
+        assert t < 0.002 and r < 0.02, (t, r)
+
+
+def test_point_noise_floors_the_normal_and_weights_spare_good_pairs():
+    """GicpConfig.regularisation adds point_noise^2 to eq. (1)'s lambda; a flat plane's
+    normal variance is then the sensor's, not the support's; Geman-McClure weights are 1 at
+    d = 0, 1/4 at c and fall as c^4 / d^4 beyond."""
+    assert GicpConfig().regularisation == pytest.approx(1e-6 + 1e-4)
+    assert GicpConfig(point_noise=0.0).regularisation == pytest.approx(1e-6)
+    rng = np.random.default_rng(0)
+    flat = np.c_[rng.uniform(0, 1, (500, 2)), np.zeros(500)]
+    covs = GicpTarget.from_points(flat).covs
+    assert np.allclose(covs[:, 2, 2], 1e-6 + 1e-4)
+    with pytest.raises(ConfigError):
+        GicpConfig(point_noise=-0.01)
+    with pytest.raises(ConfigError):
+        GicpConfig(robust_scale=-1.0)
+    p = np.zeros((4, 3))
+    q = np.array([[0.0, 0, 0], [0, 0, 1.0], [0, 0, 1.0], [0, 0, 10.0]])  # d^2 = 0, 1, 1, 100
+    w = robust_weights(np.eye(4), p, q, np.broadcast_to(np.eye(3), (4, 3, 3)), 1.0)
+    assert np.allclose(w, [1.0, 0.25, 0.25, (1 / 101) ** 2])

@@ -49,6 +49,7 @@ __all__ = [
     "estimate_covariances",
     "gicp_align",
     "mahalanobis_inliers",
+    "robust_weights",
     "se3_exp",
     "skew",
     "solve_weighted",
@@ -63,6 +64,10 @@ class GicpConfig:
 
     k_covariance: int = 10  # neighbours per covariance, eq. (1)
     lambda_reg: float = 1e-6  # the lambda I of eq. (1), m^2
+    # the sensor's range noise (m): eq. (1) also gets point_noise^2 I, so no pair claims a
+    # surface thinner than the sensor measures it (docs/paper000.md, GICP settings); 0 = eq.
+    # (1) as printed
+    point_noise: float = 0.01
     # "raw": eq. (1) as written; "plane": eigenvalues (plane_epsilon, 1, 1) (Segal et al.);
     # "shape": plane, line or isotropic by what the support spans (``estimate_covariances``)
     covariance_mode: str = "raw"
@@ -81,6 +86,15 @@ class GicpConfig:
     # pairs above this many times the median squared Mahalanobis distance are left out of
     # the step, not of the fitness (``mahalanobis_inliers``); 0 = off
     outlier_ratio: float = 0.0
+    # Geman-McClure weights (c^2 / (c^2 + d^2))^2 on each pair's squared Mahalanobis distance
+    # d^2, c^2 this many times the median d^2 (``robust_weights``): a moving car's pairs,
+    # far off in metres times the information, stop steering the step; 0 = off
+    robust_scale: float = 100.0
+
+    @property
+    def regularisation(self) -> float:
+        """What eq. (1) adds to each covariance's diagonal (m^2): lambda + point_noise^2."""
+        return self.lambda_reg + self.point_noise**2
 
     def __post_init__(self) -> None:
         if self.covariance_mode not in COVARIANCE_MODES:
@@ -90,10 +104,14 @@ class GicpConfig:
             )
         if self.k_covariance < 3:
             raise ConfigError(f"k_covariance must be >= 3, got {self.k_covariance}")
+        if self.point_noise < 0:
+            raise ConfigError(f"point_noise must be >= 0 m, got {self.point_noise}")
         if self.span_distance < 0:
             raise ConfigError(f"span_distance must be >= 0 m, got {self.span_distance}")
         if self.max_correspondence <= 0 or self.max_iterations < 1:
             raise ConfigError("max_correspondence must be > 0 and max_iterations >= 1")
+        if self.robust_scale < 0:
+            raise ConfigError(f"robust_scale must be >= 0 (0 = off), got {self.robust_scale}")
         if self.outlier_ratio < 0 or 0 < self.outlier_ratio <= 1:
             raise ConfigError(
                 f"outlier_ratio must be 0 (off) or > 1 (x the median), got {self.outlier_ratio}"
@@ -121,7 +139,7 @@ class GicpTarget:
         covs = estimate_covariances(
             xyz,
             cfg.k_covariance,
-            cfg.lambda_reg,
+            cfg.regularisation,
             cfg.covariance_mode,
             tree=tree,
             plane_epsilon=cfg.plane_epsilon,
@@ -152,6 +170,20 @@ def mahalanobis_inliers(
     return None if keep.all() else keep
 
 
+def robust_weights(
+    T: np.ndarray, p: np.ndarray, q: np.ndarray, W: np.ndarray, scale: float
+) -> np.ndarray | None:
+    """Geman-McClure IRLS weights (c^2 / (c^2 + d^2))^2 of the pairs, d^2 = e^T W e and
+    c^2 = ``scale`` x the median d^2 (scale-free: wide while the start is off, tight at the
+    minimum); None when there are no pairs."""
+    e = p @ T[:3, :3].T + T[:3, 3] - q
+    d2 = np.einsum("ni,nij,nj->n", e, W, e)
+    if not len(d2):
+        return None
+    c2 = scale * max(float(np.median(d2)), 1e-12)
+    return (c2 / (c2 + d2)) ** 2
+
+
 def _source_covariances(
     src: np.ndarray, source_covs: np.ndarray | None, cfg: GicpConfig
 ) -> np.ndarray:
@@ -160,7 +192,7 @@ def _source_covariances(
         return estimate_covariances(
             src,
             cfg.k_covariance,
-            cfg.lambda_reg,
+            cfg.regularisation,
             cfg.covariance_mode,
             plane_epsilon=cfg.plane_epsilon,
             line_ratio=cfg.line_ratio,
@@ -197,7 +229,8 @@ def _gicp_association(
             keep = mahalanobis_inliers(T, p, q, W, cfg.outlier_ratio) if cfg.outlier_ratio else None
             if keep is not None:  # the fitness stays that of every pair within the limit
                 p, q, W = p[keep], q[keep], W[keep]
-            return p, q, W, None, sqd
+            w = robust_weights(T, p, q, W, cfg.robust_scale) if cfg.robust_scale else None
+            return p, q, W, w, sqd
         # eqs. (3)-(5) and H, b, cost in one pass over the correspondences
         j = np.where(ok, j, len(target.points))  # the "no correspondence" index, as cKDTree's
         p, q, W, H, b, cost = kernels.gicp_terms(T, src, source_covs, target.points, target.covs, j)
@@ -207,7 +240,10 @@ def _gicp_association(
             if keep is not None:  # the fitness stays that of every pair within the limit
                 p, q, W = p[keep], q[keep], W[keep]
                 H, b, cost = kernels.linearise(T, p, q, W, None)
-        return p, q, W, None, sqd, (H, b, cost)
+        w = robust_weights(T, p, q, W, cfg.robust_scale) if cfg.robust_scale else None
+        if w is not None:
+            H, b, cost = kernels.linearise(T, p, q, W, w)
+        return p, q, W, w, sqd, (H, b, cost)
 
     return associate
 
