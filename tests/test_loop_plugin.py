@@ -728,3 +728,29 @@ def test_worker_does_not_run_an_unguarded_script_again(tmp_path):
     ).stdout
     assert out.count("script body ran") == 1, out
     assert "verified in a worker: True 1" in out, out
+
+
+def test_workers_start_a_lead_of_keyframes_before_the_first_possible_candidate(monkeypatch):
+    """The verification workers are spawned WORKER_LEAD keyframes before the database can
+    hold a candidate (more than exclude_recent keyframes), not at the first keyframe: a run
+    too short for any candidate spawns none."""
+    from slam.loop import background
+    from slam.loop.plugin import WORKER_LEAD
+
+    started = []
+
+    def record_start(pool):
+        started.append(len(plugin.db))
+
+    monkeypatch.setattr(background.VerifyPool, "start", record_start)
+    truth = [_pose(0.5 * i, 1.5, 0.0) for i in range(12)]
+    scene = _scene(_rooms_boxes())
+    cfg = dict(descriptor={"max_radius": 20.0, "lidar_height": 1.0}, workers={"processes": 1})
+    exclude = WORKER_LEAD + 7  # the first start at the 8th keyframe
+    plugin = LoopClosurePlugin(loop_config(**cfg, search={"exclude_recent": exclude}))
+    assert _run(plugin, truth, truth, scene) == []
+    assert started[0] == 8 and len(started) == len(truth) - 7
+    started.clear()
+    plugin = LoopClosurePlugin(loop_config(**cfg, search={"exclude_recent": exclude + 5}))
+    _run(plugin, truth, truth, scene)
+    assert started == []  # 12 keyframes: no candidate possible, no worker

@@ -50,3 +50,22 @@ def test_moved_to_keeps_the_decisions_on_deskewed_points(urban_short):
     moved = flt.moved_to(shifted)
     np.testing.assert_array_equal(moved.xyz, shifted[flt.keep])
     np.testing.assert_array_equal(moved.raw, shifted)
+
+
+def test_filter_does_not_depend_on_numba_threads(urban_short):
+    """The window search runs its rings in parallel (prange) and the box search its rows:
+    one or two numba threads give the same keep-mask, neighbours and distances, so the
+    filter thread may use either."""
+    from slam.deferred import numba_threads
+
+    cfg = ImprovedFloamConfig()
+    for i, scan in enumerate(_scans(urban_short, 3)):
+        work = crop(scan, cfg.min_range, cfg.max_range)
+        with numba_threads(1):
+            one = filter_scan(work, cfg, phase=i)
+            one_dist = one.nbh.dist.copy()
+        with numba_threads(2):
+            two = filter_scan(work, cfg, phase=i)
+        _same(one, two)
+        np.testing.assert_array_equal(one_dist, two.nbh.dist)
+        assert not one.keep.all()

@@ -308,3 +308,22 @@ def test_a_sweep_stretched_past_the_seam_keeps_its_beams() -> None:
         want = np.concatenate([ring_, np.full(60, 63)] if xyz_ is xyz else [np.full(60, 63), ring_])
         assert np.array_equal(model.ring_of(cloud), want)
         assert np.array_equal(layout_rings(cloud), want)
+
+
+def test_a_recipe_and_the_beam_table_load_without_scipy_ndimage_signal_or_fft():
+    """Start-up: scipy.ndimage / scipy.signal (the beam histogram of a driver without rings)
+    and scipy.fft (loop verification) are imported where used, not by loading a recipe."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from slam.config import load_config\n"
+        "load_config('improved_floam_loop')\n"
+        "import slam.sensor.beam_table, slam.loop.plugin, slam.loop.bev\n"
+        "print([m for m in ('scipy.ndimage', 'scipy.signal', 'scipy.fft') if m in sys.modules])\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True
+    )
+    assert run.stdout.strip().splitlines()[-1] == "[]"

@@ -11,7 +11,7 @@ import numpy as np
 
 from slam.config import load_config
 from slam.plugins import instantiate
-from slam.warmup import synthetic_scans
+from slam.warmup import synthetic_scans, without_start_search
 
 # the kernels of SOR, the range image and the window search a 64-beam frame spends most in
 HOT = (
@@ -57,3 +57,15 @@ print(json.dumps([before, loaded(), seconds]))
     assert before == [False] * len(HOT)
     assert after == [True] * len(HOT)
     assert seconds > 0
+
+
+def test_warm_up_front_end_skips_the_start_search_only():
+    section = load_config("improved_floam").frontend
+    quick = without_start_search(section)
+    assert quick["start_max_speed"] == 0.0
+    assert {k: v for k, v in quick.items() if k != "start_max_speed"} == section
+    assert "start_max_speed" not in section  # the caller's section is not changed
+    fe = instantiate("slam.frontends", quick, "frontend")
+    assert fe.cfg.start_max_speed == 0.0
+    # a front end without the search (2D) keeps its section as it is
+    assert without_start_search(load_config("dpcr2d").frontend) == load_config("dpcr2d").frontend

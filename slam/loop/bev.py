@@ -7,7 +7,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from slam.loop.angles import yaw_matrix
 
@@ -46,6 +45,8 @@ class BevTarget:
 
 def bev_target(target: np.ndarray, search: float, cell: float = 0.5) -> BevTarget:
     """Prepare the target side of :func:`bev_translation` (above-ground points, ``cell`` m)."""
+    import scipy.fft  # here: only a verification needs it (0.04 s of every start)
+
     half = int(np.ceil((search + 30.0) / cell))  # image covers +-(search + 30) m
     reach_cells = int(np.floor(search / cell))
     # zero padding of reach_cells suffices: corr[t] only needs x + t in [-reach, n + reach)
@@ -77,6 +78,8 @@ def bev_translation(
     peak share: correlation peak / occupied source cells (0-1). ``prepared``: the target's
     :func:`bev_target` for the same search and cell (computed here when None).
     """
+    import scipy.fft
+
     bt = prepared if prepared is not None else bev_target(target, search, cell)
     src = _above_ground(source)
     n, half, cell = bt.size, bt.half, bt.cell

@@ -32,6 +32,11 @@ from slam.types import Keyframe, LoopConstraint
 
 __all__ = ["CSV_COLUMNS", "LoopClosurePlugin", "auto_descriptor_params"]
 
+# keyframes of head start for the verification workers before the first keyframe that can
+# have a candidate: a spawned worker takes 1-2.5 s to import (1 s CPU), a 16-beam front end
+# makes 4-12 keyframes a second
+WORKER_LEAD = 15
+
 
 class LoopClosurePlugin:
     """Loop closure factors from Scan Context + GICP (LeGO-LOAM-LPB's two-layer scheme)."""
@@ -54,6 +59,10 @@ class LoopClosurePlugin:
         self.times = LoopTimes()
         processes = cfg.workers.processes
         self.pool = VerifyPool(processes, cfg.verify) if processes else None
+        # the workers start this many keyframes before the first one that can have a
+        # candidate (the database must hold more than exclude_recent keyframes), not at the
+        # first keyframe: a run too short for any candidate spawns none
+        self._start_at = max(search.exclude_recent + 1 - WORKER_LEAD, 0)
         self._submitted: list[KeyframeJob] = []  # in the pool, oldest first
 
     @property
@@ -82,7 +91,8 @@ class LoopClosurePlugin:
         self.times.detected()
         factors = []
         if self.pool is not None:
-            self.pool.start()
+            if len(self.db) >= self._start_at:
+                self.pool.start()
             factors = self._collect(kf.id)
         if not candidates or kf.id - self.record.last_accepted < cfg.search.min_keyframe_gap:
             self.times.verified(False)
