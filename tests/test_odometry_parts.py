@@ -187,3 +187,34 @@ def test_start_hypotheses_search_forward_and_backward_up_to_the_speed_cap():
     assert np.allclose(np.diff(slow), 2.0) and np.isclose(max(slow), 20.0)
     assert m.start_hypotheses(None) == []
     assert MotionModel(CommonConfig(start_max_speed=0.0), SweepClock()).start_hypotheses(0.1) == []
+
+
+def test_gate_believes_a_dropped_sweep_only_when_the_scan_is_explained_as_usual():
+    clock = clock_with([0.0, 0.1, 0.2, 0.3])
+    gate = TrackingGate(CommonConfig(), clock)
+    for i in range(6):
+        gate.trust(pose(0.15 * i, yaw_deg=-9.0 * i), 0.1 * i, result(), 30.0, learn=True)
+    step = np.linalg.inv(pose(0.6, yaw_deg=-36.0)) @ pose(0.75, yaw_deg=-45.0)
+    last = pose(0.75, yaw_deg=-45.0)
+    # 0.7 m and 27 deg in what the stamps call one sweep: 270 deg/s, rejected ...
+    moved = last @ pose(0.7, yaw_deg=-27.0)
+    why = gate.judge(result(), 30.0, moved, last @ step, 0.6)
+    assert why is not None and "turn rate" in why
+    assert gate.may_have_missed(result(), 30.0)
+    # ... but over two sweeps (one dropped) it is the motion extrapolated twice
+    assert gate.judge(result(), 30.0, moved, last @ step @ step, 0.6, missed=1) is None
+    assert gate.explains_as_usual(result(), 30.0)
+    # a registration that fits or covers worse than usual, or is degenerate, is not believed
+    assert not gate.explains_as_usual(result(rmse=0.16), 30.0)  # > 3 x the median
+    assert not gate.explains_as_usual(result(inliers=1500), 30.0)
+    assert not gate.explains_as_usual(result(), 0.03)  # degenerate: sigma > 5 x its floor
+    # 3 m is no dropped sweep (nor two) at this speed
+    far = last @ pose(3.0, yaw_deg=-27.0)
+    for k in (1, 2):
+        assert gate.judge(result(), 30.0, far, last @ np.linalg.matrix_power(step, k + 1), 0.6, k)
+    # after a believed dropped sweep the velocity is unknown for one frame
+    gate.trust(moved, 0.6, result(), 30.0, learn=True, missed=1)
+    assert gate.n_chained == 1 and not gate.may_have_missed(result(), 30.0)
+    assert gate.judge(result(), 30.0, moved @ pose(0.1), moved @ pose(0.6), 0.7) is None
+    gate.trust(moved @ pose(0.1), 0.7, result(), 30.0, learn=True)
+    assert gate.judge(result(), 30.0, moved @ pose(0.2), moved @ pose(0.7), 0.8) is not None

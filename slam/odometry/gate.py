@@ -10,7 +10,13 @@ import numpy as np
 from slam.odometry.clock import SweepClock
 from slam.odometry.config import CommonConfig
 from slam.registration.gicp import RegistrationResult
-from slam.registration.plausibility import RunningNormal, implausibility, relaxed
+from slam.registration.plausibility import (
+    RunningNormal,
+    explains_as_usual,
+    implausibility,
+    quality_problem,
+    relaxed,
+)
 
 
 @dataclass
@@ -35,6 +41,8 @@ class TrackingGate:
         self._clock = clock
         self.normal = RunningNormal(cfg.plausibility.window)
         self.n_trusted = 0  # trusted poses so far (the first frame included)
+        # trusted poses since the velocity was last unknown (a hypothesised dropped frame)
+        self.n_chained = 0
         self.lost_frames = 0
         self.T_trusted = np.eye(4)
         self.trusted_stamp: float | None = None
@@ -51,11 +59,17 @@ class TrackingGate:
         pose: np.ndarray,
         T_pred: np.ndarray,
         stamp: float,
+        missed: int = 0,
     ) -> str | None:
         """Why the registration ``res`` ending at ``pose`` is not believable (None: trust
-        it). The prediction is a measurement only once two trusted poses gave it a velocity."""
+        it). The prediction is a measurement only once two trusted poses gave it a velocity.
+        ``missed``: sweeps hypothesised dropped before this scan (its time is that much
+        longer; ``T_pred`` the prediction over it)."""
         since = self._clock.duration(self.trusted_stamp, stamp)
-        off_prediction = np.linalg.inv(T_pred) @ pose if self.n_trusted >= 2 else np.eye(4)
+        if missed and since is not None:
+            since += missed * (self._clock.period() or since)
+        known = self.n_trusted >= 2 and self.n_chained >= 2
+        off_prediction = np.linalg.inv(T_pred) @ pose if known else np.eye(4)
         return implausibility(
             res,
             min_eigenvalue,
@@ -69,6 +83,26 @@ class TrackingGate:
                 self.relaxation(since, self._c.fitness_relax_seconds or None),
             ),
         )
+
+    def may_have_missed(self, res: RegistrationResult, min_eigenvalue: float) -> bool:
+        """Whether a registration rejected for its motion may be a true motion over sweeps
+        the driver dropped: tracking holds with a known velocity, hypotheses are on and the
+        registration's own quality passes the gate."""
+        cfg = self._c.plausibility
+        return bool(
+            cfg.enabled
+            and cfg.missed_frames > 0
+            and not self.lost
+            and self.n_trusted >= 2
+            and self.n_chained >= 2
+            and quality_problem(res, min_eigenvalue, self.normal, cfg) is None
+        )
+
+    def explains_as_usual(self, res: RegistrationResult, min_eigenvalue: float) -> bool:
+        """Whether ``res`` is as good as the running normal and not degenerate (the bar for
+        a motion over dropped sweeps)."""
+        floor = 1.0 / self._c.information.degenerate_factor**2
+        return explains_as_usual(res, min_eigenvalue, floor, self.normal, self._c.plausibility)
 
     def relaxation(self, since: float | None, every: float | None = None) -> float:
         """Factor (1, 2, 4, ...) by which the relative tolerances are widened: doubled every
@@ -85,9 +119,11 @@ class TrackingGate:
         res: RegistrationResult | None,
         min_eigenvalue: float,
         learn: bool,
+        missed: int = 0,
     ) -> Trusted:
         """Book-keeping of a trusted pose: the running normal learns ``res`` when ``learn``
-        (the scan entered the map), a lost stretch ends."""
+        (the scan entered the map), a lost stretch ends. ``missed`` > 0: sweeps were dropped
+        before it, the velocity is unknown until the next trusted pose."""
         out = Trusted()
         if res is not None and learn:
             since = self._clock.duration(self.trusted_stamp, stamp)
@@ -105,6 +141,7 @@ class TrackingGate:
         self.T_trusted = pose.copy()
         self.trusted_stamp = float(stamp)
         self.n_trusted += 1
+        self.n_chained = 1 if missed else self.n_chained + 1
         return out
 
     def miss(self) -> bool:

@@ -55,6 +55,15 @@ class MotionModel:
         limit = max(self._c.max_extrapolation_seconds / self.motion_dt, 1.0)
         return se3_exp(_twist(self.T_motion) * min(ratio, limit))
 
+    def after_missed(self, stamp: float, missed: int) -> np.ndarray:
+        """The prediction at ``stamp`` had the driver dropped ``missed`` sweeps before it
+        unseen by the stamps: the motion to ``stamp`` repeated ``missed`` + 1 times along its
+        twist."""
+        step = self.motion_to(stamp)
+        if not missed:
+            return self.T_last @ step
+        return self.T_last @ se3_exp(_twist(step) * (missed + 1))
+
     def gap_hypotheses(self, stamp: float) -> list[np.ndarray]:
         """Initial guesses after a long gap (``gap_hypotheses_after`` frames or more), else
         []: the constant-velocity motion every ``gap_hypothesis_step`` metres within

@@ -57,6 +57,9 @@ class _Frame:
     est: Estimate | None = None
     filtered: np.ndarray | None = None
     ground_plane: np.ndarray | None = None
+    work: Scan | None = None  # the cropped, deskewed scan that was registered
+    missed: int = 0  # sweeps believed dropped before it (unseen by the stamps)
+    scan_state: object = None  # the front end's per-scan state before registering it
 
     @property
     def timings(self) -> dict[str, float]:
@@ -140,7 +143,8 @@ class ScanToMapFrontend:
         if initialising:  # nothing usable yet: stay at the origin, no keyframe
             pose = np.eye(4)
         kf = self._keyframe(pose, f)
-        if f.est is not None and not f.diag.recovered:
+        # after dropped sweeps the velocity over them is unknown: the last one stands
+        if f.est is not None and not f.diag.recovered and not f.missed:
             self.motion.learn(pose, scan.stamp)
         self.clock.observe(scan.stamp)
         self.motion.advance(pose)
@@ -158,6 +162,8 @@ class ScanToMapFrontend:
         t = time.perf_counter()
         work = self.motion.deskew(work)
         f.timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
+        f.work = work
+        f.scan_state = self._scan_state()
         try:
             starts = self.motion.gap_hypotheses(work.stamp)
             f.diag.gap_hypotheses = len(starts)
@@ -210,6 +216,11 @@ class ScanToMapFrontend:
             f.diag.lost = self.gate.judge(
                 est.result, est.information.min_eigenvalue, est.pose, T_pred, f.stamp
             )
+            if f.diag.lost is not None and self.gate.may_have_missed(
+                est.result, est.information.min_eigenvalue
+            ):
+                self._missed_sweeps(f)
+            est = f.est
         if f.diag.lost is not None:
             f.diag.rejected = True
             log.info("frame %d: registration rejected (%s); using prediction", f.index, f.diag.lost)
@@ -224,11 +235,58 @@ class ScanToMapFrontend:
         min_eig = est.information.min_eigenvalue if est.information is not None else np.nan
         # the normal learns only from registrations the gate could test against a prediction
         tested = self.gate.n_trusted >= 2
-        trusted = self.gate.trust(est.pose, f.stamp, est.result, min_eig, learn=moved and tested)
+        trusted = self.gate.trust(
+            est.pose, f.stamp, est.result, min_eig, learn=moved and tested, missed=f.missed
+        )
         f.diag.reinitialised = trusted.reinitialised
         if trusted.recovered:  # the motion model restarts from the mean over the stretch
             self.motion.restart(trusted.T_rel, trusted.lost_for, trusted.n)
             f.diag.recovered = True
+
+    def _missed_sweeps(self, f: _Frame) -> None:
+        """The registration was rejected for its motion alone: the driver may have dropped
+        sweeps without a gap in the stamps. For 1..``missed_frames`` dropped sweeps, register
+        also from the motion repeated over them, and judge every registration with that
+        time and prediction; of those the gate believes and that explain the scan as well
+        as usual, the one with the most correspondences replaces ``f.est``."""
+        cfg = self._c.plausibility
+        tried = [(f.est, self._scan_state())]
+        for k in range(1, cfg.missed_frames + 1):
+            self._restore_scan_state(f.scan_state)
+            try:
+                est = self._estimate(f.work, self.motion.after_missed(f.stamp, k), f.timings, False)
+            except RegistrationError:
+                continue
+            if est.result is not None and est.H is not None:
+                est.information = information_from_hessian(
+                    est.H, est.residual_variance, self._c.information
+                )
+                tried.append((est, self._scan_state()))
+        self._restore_scan_state(tried[0][1])
+        believed = []
+        for est, state in tried:
+            info = est.information.min_eigenvalue
+            if not self.gate.explains_as_usual(est.result, info):
+                continue
+            for k in range(1, cfg.missed_frames + 1):
+                T_pred = self.motion.after_missed(f.stamp, k)
+                if self.gate.judge(est.result, info, est.pose, T_pred, f.stamp, missed=k) is None:
+                    believed.append((est, k, state))
+                    break
+        if not believed:
+            return
+        best, k, state = max(believed, key=lambda b: (b[0].result.num_inliers, -b[0].result.rmse))
+        self._restore_scan_state(state)
+        moved = float(np.linalg.norm((np.linalg.inv(self.motion.T_last) @ best.pose)[:3, 3]))
+        log.info(
+            "frame %d: %d sweep(s) dropped before it, moved %.2f m (%s)",
+            f.index, k, moved, f.diag.lost,
+        )  # fmt: skip
+        f.est, f.missed, f.diag.lost = best, k, None
+        f.diag.skipped, f.diag.counts = best.skipped, best.counts
+        f.diag.registration, f.ground_plane = best.registration, best.ground_plane
+        if best.filtered is not None:
+            f.filtered = best.filtered
 
     def _close_tracking(self, f: _Frame) -> None:
         """A frame without a trusted pose falls back to the prediction (tracking is lost

@@ -53,6 +53,13 @@ class PlausibilityConfig:
     # a registration flagged not converged (iteration cap, stalled) is believed only when
     # its RMSE is within this factor of the median (never before there is a median)
     unconverged_fitness_ratio: float = 1.5
+    # a registration rejected only for its motion may follow frames the driver dropped with
+    # stamps that do not show it: up to this many missed frames are hypothesised (0 = off),
+    # each with its time and motion, and believed only when the registration also passes
+    # the quality tests, covers the scan as usual (inlier share at least
+    # ``missed_inlier_ratio`` x the median) and is not degenerate (a slide along a corridor is)
+    missed_frames: int = 2
+    missed_inlier_ratio: float = 0.9
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.warmup < 0:
@@ -63,6 +70,8 @@ class PlausibilityConfig:
                 "plausibility needs max_fitness_ratio > 1 and min_inlier_ratio,"
                 " min_support_ratio, min_information_ratio in [0, 1)"
             )
+        if self.missed_frames < 0:
+            raise ConfigError("plausibility missed_frames must be >= 0")
         if min(self.max_speed, self.max_turn_rate_deg) <= 0:
             raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
 
@@ -122,7 +131,27 @@ class RunningNormal:
         return float(np.median(v)) if v else float("nan")
 
 
-def _quality_problem(
+def explains_as_usual(
+    res: RegistrationResult,
+    information: float,
+    min_information: float,
+    normal: RunningNormal,
+    cfg: PlausibilityConfig,
+) -> bool:
+    """Whether ``res`` converged, passes the quality tests, covers the scan about as well
+    as the running normal (``missed_inlier_ratio``) and is not degenerate (``information``,
+    the smallest eigenvalue of the normalised information, >= ``min_information``): the bar
+    for believing a motion the stamps do not explain. False without a normal."""
+    if len(normal) < max(cfg.warmup, 1) or not res.converged:
+        return False
+    return bool(
+        quality_problem(res, information, normal, cfg) is None
+        and res.inlier_ratio >= cfg.missed_inlier_ratio * normal.median("inlier_ratio")
+        and information >= min_information
+    )
+
+
+def quality_problem(
     res: RegistrationResult, information: float, normal: RunningNormal, cfg: PlausibilityConfig
 ) -> str | None:
     """Why the registration's own quality (convergence, fitness m, inlier share, support,
@@ -195,7 +224,7 @@ def implausibility(
     """
     if not cfg.enabled:
         return None
-    problem = _quality_problem(res, information, normal, cfg)
+    problem = quality_problem(res, information, normal, cfg)
     if problem is not None or elapsed is None or not elapsed > 0:
         return problem
     return _motion_problem(T_trusted_current, T_pred_current, elapsed, cfg)
