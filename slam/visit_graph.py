@@ -35,7 +35,7 @@ import numpy as np
 
 from slam.cell_lines import line_reference
 from slam.errors import ConfigError
-from slam.graph2d_gate import optimize_gated
+from slam.graph2d_gate import frontend_check, optimize_gated
 from slam.mapping.grid2d import (
     GridConfig,
     OccupancyGrid,
@@ -80,7 +80,10 @@ class VisitGraphConfig:
     end's relative poses: the cycle of the two edges and the two stretches of front end
     between them closes within pair_m + pair_ratio * travelled (m) and pair_deg +
     pair_ratio_deg * travelled (deg), travelled the path of the two stretches (m), and
-    no more confirmed edges nearby contradict it than agree (``PairwiseCheck``)."""
+    no more confirmed edges nearby contradict it than agree (``PairwiseCheck``);
+    keep_frontend_sigma: the front end's poses are the result when every loop edge kept
+    lies within this many of its claimed sigmas of them (``slam.graph2d_gate.
+    frontend_check``; 0: never)."""
 
     visit_scans: int = 30
     pad: int = 15
@@ -123,6 +126,7 @@ class VisitGraphConfig:
     pair_ratio: float = 0.02
     pair_deg: float = 1.5
     pair_ratio_deg: float = 0.1
+    keep_frontend_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.pair_window < 0 or min(self.pair_m, self.pair_deg) <= 0:
@@ -392,6 +396,7 @@ class VisitGraph:
         self._estimate: list[np.ndarray] = []
         self._fe: list[np.ndarray] = []
         self.refine_stats: list[dict] = []
+        self.check = None  # the final front-end check (slam.graph2d_gate.FrontendCheck)
 
     @property
     def events(self) -> list[LoopEvent]:
@@ -463,6 +468,10 @@ class VisitGraph:
     def finalize(self) -> None:
         if self.loops:
             self._optimize()
+            self.check = frontend_check(self.factors, self.gate, self.cfg.keep_frontend_sigma)
+            if self.check.keep_frontend:
+                v = [self.check.values.atPose2(i) for i in range(len(self._fe))]
+                self._estimate = [np.array([p.x(), p.y(), p.theta()]) for p in v]
         if self.cfg.refine_rounds:
             self.refine_stats = refine_visits(self)
 
