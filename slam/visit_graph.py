@@ -3,7 +3,7 @@ per region (a submap of a fixed number of scans, as in Cartographer), edges only
 measurement-only clouds, a wide loop search, and the final poses of every scan from the
 optimised visit poses.
 
-A *visit* is ``visit_scans`` consecutive scans; its vertex sits at the pose of its middle
+A *visit* is ``visit_scans`` consecutive scans; its vertex sits at the pose of its last
 scan and its cloud is the hit cells (sub-cell means, 5 cm) of its scans and ``pad`` scans
 either side, drawn at the front end's own poses relative to that scan: a short stretch
 of scan matching, never a map moved by the graph. Consecutive visits are linked by the
@@ -19,7 +19,9 @@ A verified edge enters the graph only once an independent edge nearby agrees wit
 through the front end's relative poses (``PairwiseCheck``: an aliased match rarely repeats
 itself consistently). Loop edges carry a Cauchy kernel and are switched off beyond
 ``gate_sigma`` claimed sigmas at the result; the graph is optimised (Levenberg-Marquardt on
-gtsam Pose2) after each visit that added one.
+gtsam Pose2) after each visit that added one. At the end, when the front end lies within
+``keep_frontend_sigma`` of every loop edge kept, its poses are the result (the edges do
+not show it wrong; ``slam.graph2d_gate.frontend_check``).
 
 ``VisitGraph`` is the incremental core; ``VisitGraph.scan_poses`` gives every scan's pose
 (its visit's optimised pose o its front-end pose relative to the visit's vertex).
