@@ -20,7 +20,7 @@ import numpy as np
 
 from slam.errors import ConfigError, SlamError
 from slam.factors import key
-from slam.graph2d_gate import disagreement, optimize_gated
+from slam.graph2d_gate import disagreement, frontend_check, optimize_gated
 
 OPTIMIZERS = ("gauss_newton", "levenberg_marquardt")
 _PLANE = [3, 4, 2]  # (x, y, yaw) in gtsam's Pose3 tangent order (rx, ry, rz, tx, ty, tz)
@@ -34,7 +34,10 @@ class RegionGraphConfig:
     its claimed sigmas at the result is switched off and the graph re-optimised
     (``slam.graph2d_gate``, at most ``gate_rounds`` times; 0: robust kernel only);
     disagree_sigma: an odometry factor (the front end's relative pose) this many sigmas off
-    at the final estimate marks the run in ``stats()`` (metrics.json ``backend_stats``)."""
+    at the final estimate marks the run in ``stats()`` (metrics.json ``backend_stats``);
+    keep_frontend_sigma: at the end, when every loop edge kept lies within this many of
+    its claimed sigmas of the front end's own poses, the front end's poses are the result
+    (``slam.graph2d_gate.frontend_check``: the edges do not show it wrong; 0: never)."""
 
     optimizer: str = "gauss_newton"
     max_iterations: int = 30
@@ -43,6 +46,7 @@ class RegionGraphConfig:
     gate_sigma: float = 4.0
     gate_rounds: int = 3
     disagree_sigma: float = 3.0
+    keep_frontend_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -106,6 +110,7 @@ class RegionGraphBackend:
         self.optimize_ms: list[float] = []  # the paper's T_graph, one per optimisation
         self.failures: list[str] = []  # optimisations that fell back (GN -> LM) or failed
         self._gate = None  # the last gated optimisation (slam.graph2d_gate.GateResult)
+        self._check = None  # the final front-end check (slam.graph2d_gate.FrontendCheck)
 
     def update(
         self, factors: list[Any], initial: dict[int, gtsam.Pose3], loop_closed: bool = False
@@ -177,6 +182,11 @@ class RegionGraphBackend:
     def finalize(self) -> dict[int, gtsam.Pose3]:
         if self._pending:
             self._optimize()
+        if self._gate is not None:
+            sigma = self.config.keep_frontend_sigma
+            self._check = frontend_check(self._factors2, self._gate, sigma)
+            if self._check.keep_frontend:
+                self._estimate = {i: self._check.values.atPose2(key(i)) for i in self._ids}
         return self.estimate()
 
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -204,4 +214,7 @@ class RegionGraphBackend:
                 d["frontend_residual_max_sigma"] > self.config.disagree_sigma
             )
             out.update(d)
+        if self._check is not None:
+            out["frontend_loop_residual_max_sigma"] = self._check.max_sigma
+            out["kept_frontend"] = float(self._check.keep_frontend)
         return out

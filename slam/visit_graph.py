@@ -3,7 +3,7 @@ per region (a submap of a fixed number of scans, as in Cartographer), edges only
 measurement-only clouds, a wide loop search, and the final poses of every scan from the
 optimised visit poses.
 
-A *visit* is ``visit_scans`` consecutive scans; its vertex sits at the pose of its middle
+A *visit* is ``visit_scans`` consecutive scans; its vertex sits at the pose of its last
 scan and its cloud is the hit cells (sub-cell means, 5 cm) of its scans and ``pad`` scans
 either side, drawn at the front end's own poses relative to that scan: a short stretch
 of scan matching, never a map moved by the graph. Consecutive visits are linked by the
@@ -19,7 +19,9 @@ A verified edge enters the graph only once an independent edge nearby agrees wit
 through the front end's relative poses (``PairwiseCheck``: an aliased match rarely repeats
 itself consistently). Loop edges carry a Cauchy kernel and are switched off beyond
 ``gate_sigma`` claimed sigmas at the result; the graph is optimised (Levenberg-Marquardt on
-gtsam Pose2) after each visit that added one.
+gtsam Pose2) after each visit that added one. At the end, when the front end lies within
+``keep_frontend_sigma`` of every loop edge kept, its poses are the result (the edges do
+not show it wrong; ``slam.graph2d_gate.frontend_check``).
 
 ``VisitGraph`` is the incremental core; ``VisitGraph.scan_poses`` gives every scan's pose
 (its visit's optimised pose o its front-end pose relative to the visit's vertex).
@@ -35,7 +37,7 @@ import numpy as np
 
 from slam.cell_lines import line_reference
 from slam.errors import ConfigError
-from slam.graph2d_gate import optimize_gated
+from slam.graph2d_gate import frontend_check, optimize_gated
 from slam.mapping.grid2d import (
     GridConfig,
     OccupancyGrid,
@@ -80,7 +82,10 @@ class VisitGraphConfig:
     end's relative poses: the cycle of the two edges and the two stretches of front end
     between them closes within pair_m + pair_ratio * travelled (m) and pair_deg +
     pair_ratio_deg * travelled (deg), travelled the path of the two stretches (m), and
-    no more confirmed edges nearby contradict it than agree (``PairwiseCheck``)."""
+    no more confirmed edges nearby contradict it than agree (``PairwiseCheck``);
+    keep_frontend_sigma: the front end's poses are the result when every loop edge kept
+    lies within this many of its claimed sigmas of them (``slam.graph2d_gate.
+    frontend_check``; 0: never)."""
 
     visit_scans: int = 30
     pad: int = 15
@@ -123,6 +128,7 @@ class VisitGraphConfig:
     pair_ratio: float = 0.02
     pair_deg: float = 1.5
     pair_ratio_deg: float = 0.1
+    keep_frontend_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.pair_window < 0 or min(self.pair_m, self.pair_deg) <= 0:
@@ -392,6 +398,7 @@ class VisitGraph:
         self._estimate: list[np.ndarray] = []
         self._fe: list[np.ndarray] = []
         self.refine_stats: list[dict] = []
+        self.check = None  # the final front-end check (slam.graph2d_gate.FrontendCheck)
 
     @property
     def events(self) -> list[LoopEvent]:
@@ -463,6 +470,10 @@ class VisitGraph:
     def finalize(self) -> None:
         if self.loops:
             self._optimize()
+            self.check = frontend_check(self.factors, self.gate, self.cfg.keep_frontend_sigma)
+            if self.check.keep_frontend:
+                v = [self.check.values.atPose2(i) for i in range(len(self._fe))]
+                self._estimate = [np.array([p.x(), p.y(), p.theta()]) for p in v]
         if self.cfg.refine_rounds:
             self.refine_stats = refine_visits(self)
 

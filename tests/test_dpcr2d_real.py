@@ -65,3 +65,17 @@ def test_graph_closes_loops_and_agrees_with_its_front_end(mit_run):
     assert stats["loop_edges"] >= 5  # measured 11
     assert stats["disagrees_with_frontend"] == 0.0
     assert stats["frontend_residual_max_sigma"] < 3.0
+
+
+def test_front_end_check_is_reported_and_applied(mit_run):
+    """``backend_stats`` holds the front end's largest residual at the loop edges kept
+    (``slam.graph2d_gate.frontend_check``); when every edge agrees within 3 sigma the
+    front end's poses are the result, to the bit."""
+    out, _ = mit_run
+    stats = json.loads((out / "metrics.json").read_text())["backend_stats"]
+    assert np.isfinite(stats["frontend_loop_residual_max_sigma"])
+    assert stats["kept_frontend"] == float(stats["frontend_loop_residual_max_sigma"] <= 3.0)
+    _, fe = read_trajectory(out / "odometry.tum")
+    _, graph = read_trajectory(out / "trajectory.tum")
+    if stats["kept_frontend"]:
+        assert np.abs(graph[:, :3, 3] - fe[:, :3, 3]).max() < 1e-6

@@ -7,7 +7,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from slam.graph2d_gate import disagreement, is_loop, optimize_gated
+from slam.graph2d_gate import chain_values, disagreement, frontend_check, is_loop, optimize_gated
 
 
 def _chain(n=20, sigma_m=0.1, sigma_rad=0.05):
@@ -62,3 +62,38 @@ def test_a_switched_off_edge_comes_back_when_it_agrees():
     res = optimize_gated(factors, bad_start, _lm, gate_sigma=4.0)
     assert not res.off.any()
     assert abs(res.values.atPose2(20).x() - 20.0) < 1e-6
+
+
+def test_chain_values_compose_the_front_end():
+    factors, start = _chain(n=5)
+    factors[3] = gtsam.BetweenFactorPose2(3, 2, gtsam.Pose2(-1, 0, 0), factors[3].noiseModel())
+    moved = gtsam.Values()
+    for i in range(6):
+        moved.insert(i, gtsam.Pose2(i + 0.3, 0.2 * i, 0.01 * i))  # an optimised estimate
+    moved.update(0, gtsam.Pose2())
+    fe = chain_values(factors, moved)
+    assert all(abs(fe.atPose2(i).x() - i) < 1e-12 and abs(fe.atPose2(i).y()) < 1e-12
+               for i in range(6))  # fmt: skip
+    assert chain_values(factors[:3] + factors[4:], moved) is None  # the chain is broken
+
+
+def test_front_end_kept_when_every_loop_edge_agrees_within_its_noise():
+    """Loop edges within their noise of the front end (2 cm off, sigma 5 cm) only add that
+    noise: the front end is kept; one edge 0.5 m off the front end and agreeing with the
+    others (a real drift) makes the graph's result the answer."""
+    factors, start = _chain(sigma_m=0.002, sigma_rad=0.0005)
+    rng = np.random.default_rng(3)
+    factors += [_loop(i, i + 10, (10.0 + rng.normal(0, 0.02), rng.normal(0, 0.02), 0.0))
+                for i in range(0, 10, 2)]  # fmt: skip
+    gate = optimize_gated(factors, start, _lm, gate_sigma=4.0)
+    check = frontend_check(factors, gate, sigma=3.0)
+    assert check.keep_frontend and check.max_sigma < 1.5
+    assert abs(check.values.atPose2(20).x() - 20.0) < 1e-9
+    assert not frontend_check(factors, gate, sigma=0.0).keep_frontend
+
+    drift, start = _chain(sigma_m=0.1, sigma_rad=0.01)
+    drift += [_loop(0, 20, (19.75, 0.0, 0.0))]  # the front end 0.25 m long over the loop
+    gate = optimize_gated(drift, start, _lm, gate_sigma=4.0)
+    check = frontend_check(drift, gate, sigma=3.0)
+    assert not check.keep_frontend and check.max_sigma > 4.5
+    assert abs(gate.values.atPose2(20).x() - 19.75) < 0.02
