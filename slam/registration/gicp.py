@@ -152,6 +152,12 @@ class GicpTarget:
         return len(self.points)
 
 
+def _mahalanobis_sq(T: np.ndarray, p: np.ndarray, q: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """(N,) squared Mahalanobis distances e^T W e of the pairs, e = R p + t - q."""
+    e = p @ T[:3, :3].T + T[:3, 3] - q
+    return np.einsum("ni,nij,nj->n", e, W, e)
+
+
 def mahalanobis_inliers(
     T: np.ndarray, p: np.ndarray, q: np.ndarray, W: np.ndarray, ratio: float
 ) -> np.ndarray | None:
@@ -162,8 +168,7 @@ def mahalanobis_inliers(
     limit claims the millimetre of its plane covariances and can outweigh thousands of good
     pairs (docs/robustness.md, "A car roof against GICP's cost"). Relative to the median, the
     test scales with how far the start is off and with the sensor."""
-    e = p @ T[:3, :3].T + T[:3, 3] - q
-    d2 = np.einsum("ni,nij,nj->n", e, W, e)
+    d2 = _mahalanobis_sq(T, p, q, W)
     if not len(d2):
         return None
     keep = d2 <= ratio * float(np.median(d2))
@@ -176,8 +181,7 @@ def robust_weights(
     """Geman-McClure IRLS weights (c^2 / (c^2 + d^2))^2 of the pairs, d^2 = e^T W e and
     c^2 = ``scale`` x the median d^2 (scale-free: wide while the start is off, tight at the
     minimum); None when there are no pairs."""
-    e = p @ T[:3, :3].T + T[:3, 3] - q
-    d2 = np.einsum("ni,nij,nj->n", e, W, e)
+    d2 = _mahalanobis_sq(T, p, q, W)
     if not len(d2):
         return None
     c2 = scale * max(float(np.median(d2)), 1e-12)
@@ -235,13 +239,11 @@ def _gicp_association(
         j = np.where(ok, j, len(target.points))  # the "no correspondence" index, as cKDTree's
         p, q, W, H, b, cost = kernels.gicp_terms(T, src, source_covs, target.points, target.covs, j)
         sqd = d[ok] ** 2
-        if cfg.outlier_ratio:
-            keep = mahalanobis_inliers(T, p, q, W, cfg.outlier_ratio)
-            if keep is not None:  # the fitness stays that of every pair within the limit
-                p, q, W = p[keep], q[keep], W[keep]
-                H, b, cost = kernels.linearise(T, p, q, W, None)
+        keep = mahalanobis_inliers(T, p, q, W, cfg.outlier_ratio) if cfg.outlier_ratio else None
+        if keep is not None:  # the fitness stays that of every pair within the limit
+            p, q, W = p[keep], q[keep], W[keep]
         w = robust_weights(T, p, q, W, cfg.robust_scale) if cfg.robust_scale else None
-        if w is not None:
+        if keep is not None or w is not None:  # the fused pass had unit weights on every pair
             H, b, cost = kernels.linearise(T, p, q, W, w)
         return p, q, W, w, sqd, (H, b, cost)
 

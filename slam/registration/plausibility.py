@@ -70,8 +70,10 @@ class PlausibilityConfig:
                 "plausibility needs max_fitness_ratio > 1 and min_inlier_ratio,"
                 " min_support_ratio, min_information_ratio in [0, 1)"
             )
-        if self.missed_frames < 0:
-            raise ConfigError("plausibility missed_frames must be >= 0")
+        if self.missed_frames < 0 or not 0 <= self.missed_inlier_ratio <= 1:
+            raise ConfigError(
+                "plausibility missed_frames must be >= 0 and missed_inlier_ratio in [0, 1]"
+            )
         if min(self.max_speed, self.max_turn_rate_deg) <= 0:
             raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
 
