@@ -96,6 +96,8 @@ class ImprovedFloamConfig(CommonConfig):
     worker thread while scan n registers (same poses as inline, ``ScanFilter``).
     max_registration_points: above this many thinned features GICP registers a
     density-aware subset (``thin_to_count``); covariances and the map still use all (0 = all).
+    coarse_points: the coarse pass of a wide search (first motion, lost tracking) registers
+    every s-th of them, at most this many (0 = all); the fine pass registers all.
     max_scan_points / min_ring_columns: a scan of more points keeps one point per
     s = ceil(n / max_scan_points) azimuth columns of each ring, every ring kept, at least
     min_ring_columns per ring (``slam.preprocess.column_stride``, before SOR; 0 = never).
@@ -117,13 +119,14 @@ class ImprovedFloamConfig(CommonConfig):
     map_refresh_thread: bool = True
     filter_ahead: bool = True
     max_registration_points: int = 8000
+    coarse_points: int = 2000
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
 
     def __post_init__(self) -> None:
         self.strategies()  # the choices are checked here, at load
-        if self.max_registration_points < 0:
-            raise ConfigError("max_registration_points must be >= 0 (0 = no cap)")
+        if self.max_registration_points < 0 or self.coarse_points < 0:
+            raise ConfigError("max_registration_points and coarse_points must be >= 0 (0 = no cap)")
         if self.max_scan_points < 0 or self.min_ring_columns < 0:
             raise ConfigError(
                 "max_scan_points and min_ring_columns must be >= 0 (0 = no column stride / "
@@ -308,7 +311,12 @@ class ImprovedFloam(ScanToMapFrontend):
         if wide:  # tracking lost: coarse pass from the prediction with a wider search
             d = rc.max_correspondence * self.cfg.recovery_correspondence_factor
             coarse = replace(rc, max_correspondence=d)
-            T0 = gicp_align(src, target, T_pred, coarse, source_covs=covs).T_target_source
+            step = 1
+            if self.cfg.coarse_points and len(src) > self.cfg.coarse_points:
+                step = -(-len(src) // self.cfg.coarse_points)
+            T0 = gicp_align(
+                src[::step], target, T_pred, coarse, source_covs=covs[::step]
+            ).T_target_source
         return gicp_align(src, target, T0, rc, source_covs=covs)
 
     @property

@@ -14,6 +14,7 @@ import small_gicp
 from shared_data import shared_path
 
 from slam.config import load_config
+from slam.errors import ConfigError
 from slam.io.kitti import KittiSource
 from slam.plugins import instantiate
 from slam.sensor.beam_table import estimate_beams
@@ -100,3 +101,22 @@ def test_assuming_rest_fails_where_the_search_does_not():
     scans, G = load("04")
     outs = run("floam", scans, ["frontend.start_max_speed=0"])
     assert step_errors(np.stack([o.pose for o in outs]), G).max() > 0.5
+
+
+def test_a_coarse_pass_on_every_sth_feature_lands_where_all_do(start):
+    """improved_floam's wide search (the first motion's hypotheses) registers at most
+    ``coarse_points`` features in its coarse pass; the fine pass over all of them then
+    reaches the pose that a coarse pass over all gives (within 5 mm)."""
+    seq, scans, G, _ = start
+    few = run("improved_floam", scans[:4])
+    every = run("improved_floam", scans[:4], ["frontend.coarse_points=0"])
+    assert few[1].extras["start_hypotheses"] > 1
+    for a, b in zip(few, every, strict=True):
+        assert np.linalg.norm(a.pose[:3, 3] - b.pose[:3, 3]) < 0.005, seq
+    e = step_errors(np.stack([o.pose for o in few]), G[:4])
+    assert e.max() < 0.10, (seq, e.max())
+
+
+def test_coarse_points_must_not_be_negative():
+    with pytest.raises(ConfigError, match="coarse_points"):
+        run("improved_floam", [], ["frontend.coarse_points=-1"])
