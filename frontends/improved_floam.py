@@ -88,9 +88,9 @@ class ImprovedFloamConfig(CommonConfig):
     (default) or from the whole filtered "scan" voxel-downsampled to covariance_voxel.
     map_covariance: new map points get eq. (1) from their neighbours in the "map" (default)
     or keep the "scan" covariances rotated into the map.
-    map_refresh: recompute the new points and their map "neighbours" (default), the "new"
-    points only, or the neighbours "on_use": flagged stale, recomputed when a registration
-    first reaches them (``slam.mapping.stale_covariances``). map_refresh_thread: refresh the
+    map_refresh: recompute the new points, and their map neighbours "on_use" (default: flagged
+    stale, recomputed when a registration first reaches them, ``slam.mapping.stale_covariances``)
+    or at once ("neighbours"), or the "new" points only. map_refresh_thread: refresh the
     map of scan n on a worker thread while scan n + 1 is prepared (same poses as inline).
     filter_ahead: the column stride and SOR of scan n + 1 (judged before deskew) run on a
     worker thread while scan n registers (same poses as inline, ``ScanFilter``).
@@ -115,7 +115,7 @@ class ImprovedFloamConfig(CommonConfig):
     covariance_source: str = "features"
     covariance_voxel: float = 0.25
     map_covariance: str = "map"
-    map_refresh: str = "neighbours"
+    map_refresh: str = "on_use"
     map_refresh_thread: bool = True
     filter_ahead: bool = True
     max_registration_points: int = 8000
