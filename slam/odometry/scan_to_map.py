@@ -250,11 +250,12 @@ class ScanToMapFrontend:
         time and prediction; of those the gate believes and that explain the scan as well
         as usual, the one with the most correspondences replaces ``f.est``."""
         cfg = self._c.plausibility
+        preds = {k: self.motion.after_missed(f.stamp, k) for k in range(1, cfg.missed_frames + 1)}
         tried = [(f.est, self._scan_state())]
-        for k in range(1, cfg.missed_frames + 1):
+        for T_k in preds.values():
             self._restore_scan_state(f.scan_state)
             try:
-                est = self._estimate(f.work, self.motion.after_missed(f.stamp, k), f.timings, False)
+                est = self._estimate(f.work, T_k, f.timings, False)
             except RegistrationError:
                 continue
             if est.result is not None and est.H is not None:
@@ -268,9 +269,8 @@ class ScanToMapFrontend:
             info = est.information.min_eigenvalue
             if not self.gate.explains_as_usual(est.result, info):
                 continue
-            for k in range(1, cfg.missed_frames + 1):
-                T_pred = self.motion.after_missed(f.stamp, k)
-                if self.gate.judge(est.result, info, est.pose, T_pred, f.stamp, missed=k) is None:
+            for k, T_k in preds.items():
+                if self.gate.judge(est.result, info, est.pose, T_k, f.stamp, missed=k) is None:
                     believed.append((est, k, state))
                     break
         if not believed:
