@@ -21,14 +21,18 @@ from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.preprocess.sor import SorConfig
+from slam.registration import kernels
 from slam.registration.gicp import (
     GicpConfig,
     GicpTarget,
     RegistrationResult,
     estimate_covariances,
     gicp_align,
+    robust_weights,
 )
 from slam.registration.plausibility import PlausibilityConfig
+from slam.registration.se3 import transform
+from slam.sensor.beam_calibration import BeamCalibration, BeamCalibrationConfig
 from slam.types import Scan
 
 
@@ -101,6 +105,8 @@ class ImprovedFloamConfig(CommonConfig):
     max_scan_points / min_ring_columns: a scan of more points keeps one point per
     s = ceil(n / max_scan_points) azimuth columns of each ring, every ring kept, at least
     min_ring_columns per ring (``slam.preprocess.column_stride``, before SOR; 0 = never).
+    beam_calibration: per-beam elevation offsets learned from the accepted registrations and
+    applied to the filtered points (``slam.sensor.beam_calibration``).
     Source covariances know the rings of their support: a one-ring support borrows the other
     rings' points within ``registration.span_distance`` (``estimate_covariances``).
     """
@@ -110,6 +116,7 @@ class ImprovedFloamConfig(CommonConfig):
     plausibility: PlausibilityConfig = field(default_factory=_improved_plausibility)
     registration: GicpConfig = field(default_factory=GicpConfig)
     map: LocalMapConfig = field(default_factory=LocalMapConfig)
+    beam_calibration: BeamCalibrationConfig = field(default_factory=BeamCalibrationConfig)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
     covariance_source: str = "features"
@@ -152,6 +159,13 @@ class FeatureCloud:
     covs: np.ndarray
     rows: np.ndarray | None = None
     registered: np.ndarray | None = None
+    rings: np.ndarray | None = None  # the beam of each point
+
+    def registered_rings(self) -> np.ndarray | None:
+        """The beams of the registered points."""
+        if self.rings is None or self.registered is None:
+            return self.rings
+        return self.rings[self.registered]
 
     def registration_source(self) -> tuple[np.ndarray, np.ndarray]:
         """The registered points and their covariances."""
@@ -189,6 +203,7 @@ class ImprovedFloam(ScanToMapFrontend):
         # stride and SOR before deskew, the next scan's on a worker thread meanwhile
         self._scan_filter = ScanFilter(self.cfg, threaded=self.cfg.filter_ahead)
         self._filtered: Filtered | None = None
+        self._calibration = BeamCalibration(self.cfg.beam_calibration)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         # the map refresh of the previous scan runs on the other core meanwhile
@@ -213,13 +228,14 @@ class ImprovedFloam(ScanToMapFrontend):
         counts: dict = {"n_after_sor": int(len(flt.xyz))}
         if flt.stride is not None:
             counts.update(column_stride=flt.stride, n_after_stride=int(len(flt.raw)))
-        est = Estimate(T_pred, filtered=flt.xyz, counts=counts)
 
         t = time.perf_counter()
         rings, fc = flt.rings, self.cfg.features
         if rings is None:  # a driver without a ring field: inferred once for both users
             rings = ring_from_elevation(flt.xyz, fc.n_beams, fc.fov_deg)
         rings = np.asarray(rings)
+        flt = replace(flt, xyz=self._calibration.correct(flt.xyz, rings))
+        est = Estimate(T_pred, filtered=flt.xyz, counts=counts)
         e_idx, p_idx = self._feature_indices(flt, rings)
         counts.update(n_edges=int(len(e_idx)), n_planes=int(len(p_idx)))
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
@@ -297,7 +313,7 @@ class ImprovedFloam(ScanToMapFrontend):
             span_distance=rc.span_distance,
             threads=rc.threads,
         )
-        return FeatureCloud(src, covs, rows, reg)
+        return FeatureCloud(src, covs, rows, reg, rings[src_idx])
 
     def _align(
         self, src: np.ndarray, covs: np.ndarray, T_pred: np.ndarray, wide: bool
@@ -344,6 +360,8 @@ class ImprovedFloam(ScanToMapFrontend):
             rotated = np.broadcast_to(np.eye(3), (len(fc.points), 3, 3))
         else:
             rotated = np.einsum("ij,njk,lk->nil", R, fc.covs, R)
+        if self.cfg.beam_calibration.enabled:
+            self._calibrate(fc, T)
         n_new = self._map.add(fc.points @ R.T + T[:3, 3], rotated, T[:3, 3])
         if not (from_map and n_new):
             return
@@ -353,6 +371,22 @@ class ImprovedFloam(ScanToMapFrontend):
             self._map.covs[len(self._map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs, R)
         else:
             self._map_job.submit(lambda: self._timed_refresh(n_new))
+
+    def _calibrate(self, fc: FeatureCloud, T: np.ndarray) -> None:
+        """Measure the beams' elevation offsets on the accepted registration at ``T``: its
+        registered points paired with the map as the last GICP iteration pairs them."""
+        rings = fc.registered_rings()
+        if rings is None or len(self._map) < 10:
+            return
+        rc = self.cfg.registration
+        src, covs = fc.registration_source()
+        tree = self._fresh if self._refresh is MapRefresh.ON_USE else self._map
+        d, j = tree.query(transform(T, src), k=1, distance_upper_bound=rc.max_correspondence)
+        ok = np.isfinite(d)
+        j = np.where(ok, j, len(self._map.points))
+        p, q, W, _, _, _ = kernels.gicp_terms(T, src, covs, self._map.points, self._map.covs, j)
+        w = robust_weights(T, p, q, W, rc.robust_scale) if rc.robust_scale else None
+        self._calibration.update(p, rings[ok], T, q, W, w)
 
     def _timed_refresh(self, n_new: int) -> None:
         t = time.perf_counter()
