@@ -41,7 +41,9 @@ from slam.mapping.grid2d import (
     transform2d,
     wrap,
 )
+from slam.mapping.scan_window2d import ScanWindow
 from slam.registration.correlative2d import correlative_search
+from slam.registration.local_lines2d import local_line_reference
 from slam.registration.plicp import LineReference, PlicpResult, plicp
 from slam.types import FrameDiagnostics, Odometry, RegionAnchor, RegionTag, Scan, TrackingStatus
 
@@ -70,6 +72,7 @@ class Dpcr2d:
         self.submap = OccupancyGrid(self.cfg.submap_grid)
         self.submap_ref: LineReference | None = None
         self.submap_refreshed_at = -(10**9)
+        self.fine = ScanWindow(self.cfg.refine)  # raw points of the last scans (refinement)
         self.regions: dict[int, Region] = {}
         self.region: int | None = None
         self.pose_kf = np.zeros(3)
@@ -188,17 +191,26 @@ class Dpcr2d:
 
     def _refresh_submap_lines(self) -> None:
         obstacles, hits = self.submap.obstacle_hits()
-        lines = extract_lines(obstacles, self.submap.cfg.resolution, self.cfg.lines, hits)
-        self.submap_ref = LineReference.from_lines(lines) if len(obstacles) else None
+        self.submap_ref = self._reference(obstacles, hits, self.submap, self.cfg.submap_lines)
         self.submap_refreshed_at = self.frame
+
+    def _reference(self, obstacles, hits, grid, kind: str) -> LineReference | None:
+        """The line reference of a grid's obstacle points: split-and-merge lines
+        (``fitted``) or each point's local line (``local``)."""
+        if not len(obstacles):
+            return None
+        if kind == "local":
+            return local_line_reference(obstacles, self.cfg.refine.lines)
+        return LineReference.from_lines(
+            extract_lines(obstacles, grid.cfg.resolution, self.cfg.lines, hits)
+        )
 
     def _region_ref(self, region: Region) -> LineReference | None:
         if self.frame - region.refreshed_at >= self.cfg.k2 or region.ref is None:
             obstacles, hits = region.grid.obstacle_hits()
             if len(obstacles) < self.cfg.min_points:
                 return None
-            lines = extract_lines(obstacles, region.grid.cfg.resolution, self.cfg.lines, hits)
-            region.ref = LineReference.from_lines(lines)
+            region.ref = self._reference(obstacles, hits, region.grid, self.cfg.regional_lines)
             region.refreshed_at = self.frame
         return region.ref
 
@@ -246,13 +258,24 @@ class Dpcr2d:
         if not self._plausible(res, np.zeros(3)):
             self.counts["second_rejected"] += 1
             return
-        self._move(region.in_map(res.pose))  # map-frame correction of the submap
+        delta = region.in_map(res.pose)  # map-frame correction of the submap
+        local = compose2d(compose2d(inverse2d(self.pose), delta), self.pose)  # robot frame
+        cfg = self.cfg
+        if (0 < cfg.second_max_m < np.hypot(local[0], local[1])
+                or 0 < cfg.second_max_deg < abs(np.degrees(local[2]))):  # fmt: skip
+            self.counts["second_rejected"] += 1
+            return
+        if self.cfg.second_gain < 1.0:
+            delta = compose2d(compose2d(self.pose, self.cfg.second_gain * local),
+                              inverse2d(self.pose))  # fmt: skip
+        self._move(delta)
         timings["second_ms"] = (time.perf_counter() - t) * 1e3
 
     def _move(self, delta: np.ndarray) -> None:
         """Move the robot and the submap by the world-frame correction ``delta``."""
         self.pose = compose2d(delta, self.pose)
         self.window = deque((pts, compose2d(delta, pose)) for pts, pose in self.window)
+        self.fine.move(delta)
         self._rebuild_submap()
         self._refresh_submap_lines()
 
@@ -365,14 +388,35 @@ class Dpcr2d:
             self.counts["rejected"] += 1
             diag.rejected = True
             return predicted, TrackingStatus.LOST
+        if cfg.refine.scans and len(self.fine):
+            t = time.perf_counter()
+            res = self._refine(pts, res, prior, diag.counts)
+            diag.timings_ms["refine_ms"] = (time.perf_counter() - t) * 1e3
         if from_wheels:
             self._learn_odometry_noise(predicted, res.pose)
         return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
+
+    def _refine(self, pts: np.ndarray, res: PlicpResult, prior: dict, counts: dict) -> PlicpResult:
+        """The first registration refined by PLICP on the local lines of the raw points
+        of the last scans (``refine``, ``slam.mapping.scan_window2d``), with the same wheel
+        prior; kept when within ``refine_max_m`` / ``refine_max_deg`` of it."""
+        cfg = self.cfg
+        out = plicp(pts, self.fine.reference(), res.pose, cfg.refine_plicp, **prior)
+        step = compose2d(inverse2d(res.pose), out.pose)
+        ok = (
+            out.matches >= cfg.refine_plicp.min_matches
+            and np.hypot(step[0], step[1]) <= cfg.refine_max_m
+            and abs(np.degrees(step[2])) <= cfg.refine_max_deg
+        )
+        counts.update(refine_m=float(np.hypot(step[0], step[1])), refine_kept=int(ok))
+        return out if ok else res
 
     def _add_to_submap(self, pts: np.ndarray) -> None:
         """The scan joins the sliding submap (the oldest leaves it); lines refreshed every K1."""
         cfg, pose = self.cfg, self.pose
         if len(pts) >= cfg.min_points:
+            if cfg.refine.scans:
+                self.fine.add(pts, pose)
             self.window.append((pts, pose.copy()))
             self.submap.add_scan(transform2d(pose, pts), pose[:2], free_space=False)
             if len(self.window) > cfg.submap_scans:

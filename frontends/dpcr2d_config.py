@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from slam.errors import ConfigError
 from slam.features.lines2d import LineConfig
 from slam.mapping.grid2d import GridConfig
+from slam.mapping.scan_window2d import ScanWindowConfig
 from slam.registration.correlative2d import CorrelativeConfig
 from slam.registration.plicp import PlicpConfig
 
@@ -86,6 +87,25 @@ class Dpcr2dConfig:
     chain lets the loop edges bend the trajectory between vertices, which the
     relations see as steps (Intel 1.09 -> 1.24 cm mean with 1, 1.08 cm with 64). Only with
     the first registration on (wheel odometry alone keeps the model).
+
+    refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
+    after the first registration, PLICP of the scan on the raw points of the last
+    ``refine.scans`` scans (each taken >= 5 cm / 2 deg from the one before), every point
+    matched to the line of its own neighbourhood (``slam.registration.local_lines2d``),
+    with the same wheel prior, settings ``refine_plicp``; its pose is taken when within
+    ``refine_max_m`` / ``refine_max_deg`` of the first registration's. The submap's lines
+    (split and merge over 5 cm cells, 6 cm tolerance) leave a few mm - cm of bias along
+    real walls that are not straight; the scans' own points do not. submap_lines /
+    regional_lines: "fitted" (those lines) or "local" (each obstacle cell's local line).
+
+    second_gain: the share of the second registration's correction applied (expressed
+    about the robot): the correction is the regional map's noise as much as the drift
+    since the last one, and jumps of the trajectory every ``second_every`` frames are
+    what the short relations see; a gain below 1 averages that noise while the drift is
+    still taken out over a few registrations. second_max_m / second_max_deg (0: off): a
+    larger correction (about the robot) is not applied (the revisit search handles real
+    jumps). All three off by default: measured on the real logs, not kept (docs/dpcr2d.md,
+    "The short-range residual of the front end").
     """
 
     submap_scans: int = 20
@@ -131,12 +151,30 @@ class Dpcr2dConfig:
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )
+    submap_lines: str = "fitted"
+    regional_lines: str = "fitted"
+    second_gain: float = 1.0
+    second_max_m: float = 0.0
+    second_max_deg: float = 0.0
+    refine: ScanWindowConfig = field(default_factory=ScanWindowConfig)
+    refine_plicp: PlicpConfig = field(
+        default_factory=lambda: PlicpConfig(max_distance=0.3, max_iterations=10, tolerance=1e-4)
+    )
+    refine_max_m: float = 0.1
+    refine_max_deg: float = 2.0
 
     def __post_init__(self) -> None:
         if self.submap_scans < 1 or self.k1 < 1 or self.k2 < self.k1 or self.second_every < 1:
             raise ConfigError("dpcr2d: submap_scans, k1, second_every >= 1 and k2 >= k1")
         if not self.region_width > 0:
             raise ConfigError(f"dpcr2d: region_width must be > 0, got {self.region_width}")
+        if self.submap_lines not in ("fitted", "local") or self.regional_lines not in (
+            "fitted",
+            "local",
+        ):
+            raise ConfigError("dpcr2d: submap_lines and regional_lines are 'fitted' or 'local'")
+        if not 0 < self.second_gain <= 1:
+            raise ConfigError(f"dpcr2d: second_gain must be in (0, 1], got {self.second_gain}")
         if self.visit_scans < 0 or self.visit_pad < 0:
             raise ConfigError("dpcr2d: visit_scans and visit_pad must be >= 0")
         if self.visit_scans and self.graph_feedback:
