@@ -33,6 +33,7 @@ from slam.mapping.grid2d import (
     wrap,
 )
 from slam.registration.correlative2d import CorrelativeConfig, correlative_search
+from slam.registration.local_lines2d import thin
 from slam.types import FrameDiagnostics, Odometry, Scan, TrackingStatus
 
 
@@ -172,14 +173,6 @@ def icp2d(
     return Icp2dResult(pose, rmse, matches, it, converged)
 
 
-def _thin(xy: np.ndarray, voxel: float) -> np.ndarray:
-    """One point per ``voxel`` cell (the first), world frame."""
-    if voxel <= 0 or len(xy) == 0:
-        return xy
-    _, keep = np.unique(np.floor(xy / voxel).astype(np.int64), axis=0, return_index=True)
-    return xy[np.sort(keep)]
-
-
 class Icp2d:
     """The baseline scan-to-submap ICP front end (plugin ``icp2d``)."""
 
@@ -259,7 +252,7 @@ class Icp2d:
         previous = self.pose
         self.pose = pose
         if len(pts) >= cfg.min_points:
-            self.window.append(_thin(transform2d(pose, pts), cfg.voxel))
+            self.window.append(thin(transform2d(pose, pts), cfg.voxel))
             if len(self.window) > cfg.submap_scans:
                 self.window.popleft()
         is_kf = self.frame % cfg.keyframe_every == 0
