@@ -105,8 +105,8 @@ class ImprovedFloamConfig(CommonConfig):
     max_scan_points / min_ring_columns: a scan of more points keeps one point per
     s = ceil(n / max_scan_points) azimuth columns of each ring, every ring kept, at least
     min_ring_columns per ring (``slam.preprocess.column_stride``, before SOR; 0 = never).
-    beam_calibration: per-beam elevation offsets learned from the accepted registrations and
-    applied to the filtered points (``slam.sensor.beam_calibration``).
+    beam_calibration: per-beam elevation, azimuth and range offsets learned from the accepted
+    registrations and applied to the filtered points (``slam.sensor.beam_calibration``).
     Source covariances know the rings of their support: a one-ring support borrows the other
     rings' points within ``registration.span_distance`` (``estimate_covariances``).
     """
@@ -373,8 +373,8 @@ class ImprovedFloam(ScanToMapFrontend):
             self._map_job.submit(lambda: self._timed_refresh(n_new))
 
     def _calibrate(self, fc: FeatureCloud, T: np.ndarray) -> None:
-        """Measure the beams' elevation offsets on the accepted registration at ``T``: its
-        registered points paired with the map as the last GICP iteration pairs them."""
+        """Measure the beams' offsets on the accepted registration at ``T``: its registered
+        points paired with the map as GICP pairs them (one more association at ``T``)."""
         rings = fc.registered_rings()
         if rings is None or len(self._map) < 10:
             return
