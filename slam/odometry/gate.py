@@ -16,6 +16,7 @@ from slam.registration.plausibility import (
     implausibility,
     quality_problem,
     relaxed,
+    shown_by_scan,
 )
 
 
@@ -103,6 +104,18 @@ class TrackingGate:
         a motion over dropped sweeps)."""
         floor = 1.0 / self._c.information.degenerate_factor**2
         return explains_as_usual(res, min_eigenvalue, floor, self.normal, self._c.plausibility)
+
+    def shown_by_scan(
+        self,
+        res: RegistrationResult,
+        pose: np.ndarray,
+        first: RegistrationResult,
+        first_pose: np.ndarray,
+    ) -> bool:
+        """Whether a motion over dropped sweeps (``res`` at ``pose``) is the scan's own
+        answer rather than its start's: the registration from the constant-velocity
+        prediction (``first``) agrees, or fits clearly worse (``shown_by_scan``)."""
+        return shown_by_scan(res, pose, first, first_pose, self._c.plausibility)
 
     def relaxation(self, since: float | None, every: float | None = None) -> float:
         """Factor (1, 2, 4, ...) by which the relative tolerances are widened: doubled every

@@ -248,7 +248,9 @@ class ScanToMapFrontend:
         sweeps without a gap in the stamps. For 1..``missed_frames`` dropped sweeps, register
         also from the motion repeated over them, and judge every registration with that
         time and prediction; of those the gate believes and that explain the scan as well
-        as usual, the one with the most correspondences replaces ``f.est``."""
+        as usual, the one with the most correspondences replaces ``f.est``, when the scan
+        shows it (``TrackingGate.shown_by_scan``: not where every start converges near
+        itself, as along a plain street)."""
         cfg = self._c.plausibility
         preds = {k: self.motion.after_missed(f.stamp, k) for k in range(1, cfg.missed_frames + 1)}
         tried = [(f.est, self._scan_state())]
@@ -276,6 +278,14 @@ class ScanToMapFrontend:
         if not believed:
             return
         best, k, state = max(believed, key=lambda b: (b[0].result.num_inliers, -b[0].result.rmse))
+        first = tried[0][0]
+        if not self.gate.shown_by_scan(best.result, best.pose, first.result, first.pose):
+            log.info(
+                "frame %d: registrations from the prediction and over %d dropped sweep(s) end"
+                " %.2f m apart and fit alike: a degenerate direction, no sweep assumed dropped",
+                f.index, k, float(np.linalg.norm((np.linalg.inv(first.pose) @ best.pose)[:3, 3])),
+            )  # fmt: skip
+            return
         self._restore_scan_state(state)
         moved = float(np.linalg.norm((np.linalg.inv(self.motion.T_last) @ best.pose)[:3, 3]))
         log.info(

@@ -60,6 +60,11 @@ class PlausibilityConfig:
     # ``missed_inlier_ratio`` x the median) and is not degenerate (a slide along a corridor is)
     missed_frames: int = 2
     missed_inlier_ratio: float = 0.9
+    # ... and the scan itself must show it: the registration from the constant-velocity
+    # prediction ends within the prediction floor of it, or covers a share of the scan this
+    # much smaller (inlier share, absolute). Along a plain street every start converges near
+    # itself, so there the start, not the scan, would choose the motion.
+    missed_min_gain: float = 0.05
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.warmup < 0:
@@ -74,6 +79,8 @@ class PlausibilityConfig:
             raise ConfigError(
                 "plausibility missed_frames must be >= 0 and missed_inlier_ratio in [0, 1]"
             )
+        if not 0 <= self.missed_min_gain <= 1:
+            raise ConfigError("plausibility missed_min_gain must be in [0, 1] (inlier share)")
         if min(self.max_speed, self.max_turn_rate_deg) <= 0:
             raise ConfigError("plausibility max_speed and max_turn_rate_deg must be > 0")
 
@@ -151,6 +158,23 @@ def explains_as_usual(
         and res.inlier_ratio >= cfg.missed_inlier_ratio * normal.median("inlier_ratio")
         and information >= min_information
     )
+
+
+def shown_by_scan(
+    res: RegistrationResult,
+    pose: np.ndarray,
+    first: RegistrationResult,
+    first_pose: np.ndarray,
+    cfg: PlausibilityConfig,
+) -> bool:
+    """Whether the scan itself shows a motion over dropped sweeps (``res`` at ``pose``),
+    not only the start it was registered from: the registration from the constant-velocity
+    prediction (``first`` at ``first_pose``) ends within the prediction floor of it, or
+    covers at least ``missed_min_gain`` less of the scan (it converged to a worse minimum)."""
+    t, r = motion_magnitude(np.linalg.inv(first_pose) @ pose)
+    if t <= cfg.prediction_floor and r <= cfg.prediction_floor_deg:
+        return True
+    return bool(res.inlier_ratio >= first.inlier_ratio + cfg.missed_min_gain)
 
 
 def quality_problem(
