@@ -31,6 +31,7 @@ from slam.registration.gicp import (
     robust_weights,
 )
 from slam.registration.plausibility import PlausibilityConfig
+from slam.registration.pose_prior import MotionPriorConfig, PosePrior
 from slam.registration.se3 import transform
 from slam.sensor.beam_calibration import BeamCalibration, BeamCalibrationConfig
 from slam.types import Scan
@@ -74,6 +75,10 @@ def _improved_features() -> FeatureConfig:
     return FeatureConfig(use_covariance_curvature=True)
 
 
+def _improved_motion_prior() -> MotionPriorConfig:
+    return MotionPriorConfig(enabled=True)
+
+
 def _improved_plausibility() -> PlausibilityConfig:
     """The gate with a 0.1 m per-frame floor off the constant-velocity prediction (the common
     default is 0.3 m): GICP pulled along a plain corridor by people walking in it creeps
@@ -105,6 +110,9 @@ class ImprovedFloamConfig(CommonConfig):
     max_scan_points / min_ring_columns: a scan of more points keeps one point per
     s = ceil(n / max_scan_points) azimuth columns of each ring, every ring kept, at least
     min_ring_columns per ring (``slam.preprocess.column_stride``, before SOR; 0 = never).
+    motion_prior: the tracked constant-velocity prediction as a Gaussian prior of GICP
+    (``slam.registration.pose_prior``): it holds the directions a plain street leaves
+    unobserved.
     beam_calibration: per-beam elevation, azimuth and range offsets learned from the accepted
     registrations and applied to the filtered points (``slam.sensor.beam_calibration``).
     Source covariances know the rings of their support: a one-ring support borrows the other
@@ -117,6 +125,7 @@ class ImprovedFloamConfig(CommonConfig):
     registration: GicpConfig = field(default_factory=GicpConfig)
     map: LocalMapConfig = field(default_factory=LocalMapConfig)
     beam_calibration: BeamCalibrationConfig = field(default_factory=BeamCalibrationConfig)
+    motion_prior: MotionPriorConfig = field(default_factory=_improved_motion_prior)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
     covariance_source: str = "features"
@@ -216,7 +225,7 @@ class ImprovedFloam(ScanToMapFrontend):
         timings["map_refresh_ms"] = self._map_job_ms
         t = time.perf_counter()
         if len(self._map) >= 10:
-            est.result = self._align(src, covs, T_pred, wide)
+            est.result = self._align(src, covs, T_pred, wide, self._motion_prior(T_pred))
             est.pose = est.result.T_target_source
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
@@ -315,11 +324,22 @@ class ImprovedFloam(ScanToMapFrontend):
         )
         return FeatureCloud(src, covs, rows, reg, rings[src_idx])
 
+    def _motion_prior(self, T_pred: np.ndarray) -> PosePrior | None:
+        """The tracked prediction as a prior of the registration (``motion_prior``), or None."""
+        if not self.cfg.motion_prior.enabled or self.tracked_horizon is None:
+            return None
+        return self.cfg.motion_prior.prior(T_pred, self.tracked_horizon)
+
     def _align(
-        self, src: np.ndarray, covs: np.ndarray, T_pred: np.ndarray, wide: bool
+        self,
+        src: np.ndarray,
+        covs: np.ndarray,
+        T_pred: np.ndarray,
+        wide: bool,
+        prior: PosePrior | None = None,
     ) -> RegistrationResult:
         """GICP against the map (its voxel hash answers the neighbour queries) from
-        ``T_pred``; ``wide``: a coarse pass with a wider search first."""
+        ``T_pred``; ``wide``: a coarse pass with a wider search first; ``prior``: on the pose."""
         rc = self.cfg.registration
         tree = self._fresh if self._refresh is MapRefresh.ON_USE else self._map
         target = GicpTarget(self._map.points, self._map.covs, tree=tree)
@@ -333,7 +353,7 @@ class ImprovedFloam(ScanToMapFrontend):
             T0 = gicp_align(
                 src[::step], target, T_pred, coarse, source_covs=covs[::step]
             ).T_target_source
-        return gicp_align(src, target, T0, rc, source_covs=covs)
+        return gicp_align(src, target, T0, rc, source_covs=covs, prior=prior)
 
     @property
     def map(self) -> VoxelHashMap:

@@ -81,6 +81,10 @@ class ScanToMapFrontend:
         self.search = StartSearch(
             common, self._estimate, self._scan_state, self._restore_scan_state
         )
+        # seconds the prediction spans while ``_estimate`` registers from the constant-
+        # velocity prediction of a tracked motion (a front end may take it as a prior);
+        # None during searches, hypotheses and lost tracking
+        self.tracked_horizon: float | None = None
 
     # ------------------------------------------------------------------ to implement
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
@@ -176,7 +180,11 @@ class ScanToMapFrontend:
                 )
                 f.diag.start_hypotheses = n
             else:
-                f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
+                self.tracked_horizon = self._tracked_horizon(f.stamp)
+                try:
+                    f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
+                finally:
+                    self.tracked_horizon = None
             f.diag.skipped = f.est.skipped
             f.diag.counts = f.est.counts
             f.diag.registration = f.est.registration
@@ -188,6 +196,14 @@ class ScanToMapFrontend:
         has_own = f.est is not None and f.est.filtered is not None
         f.filtered = f.est.filtered if has_own else work.xyz
         return T_pred
+
+    def _tracked_horizon(self, stamp: float) -> float | None:
+        """Seconds from the last frame to ``stamp`` when the prediction comes from a tracked
+        velocity (two chained trusted poses, tracking not lost), else None."""
+        if self.gate.lost or self.gate.n_trusted < 2 or self.gate.n_chained < 2:
+            return None
+        gap = self.clock.since_last(stamp)
+        return gap if gap is not None and gap > 0 else self.clock.period()
 
     def _before_deskew(self, scan: Scan, work: Scan, timings: dict) -> None:
         """Work on the cropped scan that needs no motion estimate (e.g. outlier removal),

@@ -23,6 +23,7 @@ from slam.registration import kernels
 from slam.registration.covariances import COVARIANCE_MODES, estimate_covariances
 from slam.registration.neighbours import SERIAL_QUERIES, KnnTree
 from slam.registration.neighbours import _workers as _workers
+from slam.registration.pose_prior import PosePrior
 from slam.registration.result import (
     CONVERGED_REASONS,
     STOP_REASONS,
@@ -258,6 +259,7 @@ def gicp_align(
     source_covs: np.ndarray | None = None,
     *,
     reference: bool = False,
+    prior: PosePrior | None = None,
 ) -> RegistrationResult:
     """Align ``source_xyz`` to ``target`` (a GicpTarget, e.g. the local map, or raw points).
 
@@ -266,7 +268,8 @@ def gicp_align(
     the source itself. Returns T_target_source and the Hessian at the solution.
     ``target.tree`` may be a cKDTree or anything with its ``query`` (the local map
     ``VoxelHashMap``). reference: the numpy solver throughout (the compiled kernels give the
-    same transform; see tests/test_gicp.py).
+    same transform; see tests/test_gicp.py). prior: a Gaussian prior on the pose
+    (``PosePrior``, e.g. the tracked prediction; ``solve_weighted``).
     """
     cfg = cfg or GicpConfig()
     src = _check_points(source_xyz, "source points")
@@ -287,4 +290,5 @@ def gicp_align(
         fitness_epsilon=cfg.fitness_epsilon,
         reference=reference,
         predict_convergence=cfg.predict_convergence,
+        prior=prior,
     )

@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 
 from slam.registration import kernels
+from slam.registration.pose_prior import PosePrior
 from slam.registration.result import CONVERGED_REASONS, RegistrationError, RegistrationResult
 from slam.registration.se3 import se3_exp, skew
 
@@ -143,6 +144,15 @@ def _result(
     )
 
 
+def _with_prior(cost_of: CostOf, prior: PosePrior) -> CostOf:
+    """The cost of a pose with these pairs plus the prior's."""
+
+    def cost(T, *pairs) -> float:
+        return cost_of(T, *pairs) + prior.cost(T)
+
+    return cost
+
+
 def solve_weighted(
     init_T: np.ndarray,
     associate: Associate,
@@ -155,6 +165,7 @@ def solve_weighted(
     min_inliers: int = 6,
     reference: bool = False,
     predict_convergence: bool = False,
+    prior: PosePrior | None = None,
 ) -> RegistrationResult:
     """Gauss-Newton / Levenberg-Marquardt on SE(3) with re-association every iteration.
 
@@ -167,6 +178,8 @@ def solve_weighted(
     predict_convergence: stop ("step") as well when the steps still to come are below the
     epsilon (``_tail_small``): the association that would only measure the next, smaller
     step is saved (docs/paper000.md). The Hessian returned is the last association's.
+    prior: a Gaussian prior on the pose (``PosePrior``) added to every step and its cost;
+    the Hessian and cost returned are the scan's alone (its own information).
     """
     lin, cost_of = (_linearise, _cost) if reference else (kernels.linearise, kernels.cost)
     T = np.asarray(init_T, dtype=np.float64).copy()
@@ -181,11 +194,16 @@ def solve_weighted(
             associate, T, lin, reference, min_inliers
         )
         n_in = len(p)
-        if prev_cost is not None and abs(prev_cost - cost) <= fitness_epsilon * max(cost, 1e-12):
+        H_step, b_step, total, step_cost = H, b, cost, cost_of
+        if prior is not None:
+            H_p, b_p, c_p = prior.linearised(T)
+            H_step, b_step, total = H + H_p, b + b_p, cost + c_p
+            step_cost = _with_prior(cost_of, prior)
+        if prev_cost is not None and abs(prev_cost - total) <= fitness_epsilon * max(total, 1e-12):
             reason = "fitness"
             break
-        prev_cost = cost
-        T, mu, xi, first_step = _damped_step(T, H, b, cost, mu, cost_of, (p, q, W, w))
+        prev_cost = total
+        T, mu, xi, first_step = _damped_step(T, H_step, b_step, total, mu, step_cost, (p, q, W, w))
         if xi is None:
             # no damped step lowers the cost: at the minimum when even the least damped step
             # was already below the epsilon (rounding), else stuck short of it
