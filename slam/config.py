@@ -45,11 +45,13 @@ class SourceConfig:
     at the first damaged message or bad stamp (default: skip that frame, count it, go on).
     beam_scans: the first scans the beam table (elevation per ring) is estimated from, so
     that clouds without a ring field get one (slam.sensor); 0 = never.
-    layout_time: per-point time for clouds stored beam by beam (KITTI's layout) without a
-    time field, from each point's azimuth, so that the front end can deskew them: "always"
-    or "never" (default; "auto" means "never", kept for recipes of version 0.1). Off by
-    default because KITTI publishes its scans already motion-compensated (also in the bags
-    converted from them), and deskewing them again makes them worse.
+    layout_time: per-point time for clouds stored beam by beam (KITTI's, an Ouster driver's
+    layout) without a time field, from each point's azimuth, so that the front end can
+    deskew them. "auto" (default): made up as ``Scan.layout_time``, and the front end
+    deskews with it only once registrations at speed show the clouds are not
+    motion-compensated (KITTI publishes its scans compensated, also in the bags converted
+    from them, and deskewing them again makes them worse; an Ouster driver does not);
+    "always": used as the time field; "never": not made up.
     stamps: the clock that stamps a scan (slam.io.stamps). "header": the driver's header
     stamp; "record": the bag's record time (bags only); "auto": the header stamp unless it
     does not increase over the first 10 messages (running backwards, all equal), then the
@@ -64,7 +66,7 @@ class SourceConfig:
     max_frames: int | None = None
     strict: bool = False
     beam_scans: int = 3
-    layout_time: str = "never"
+    layout_time: str = "auto"
     stamps: str = "auto"
     reorder_window: int = 4
 

@@ -25,6 +25,9 @@ class Scan:
     seconds from the start of the sweep (>= 0) or None when the driver gives none.
     odom: the robot's wheel odometry at the stamp, (x, y, theta) in m and rad in the
     odometry's own frame, when the input carries it (2D laser logs), else None.
+    layout_time: like ``time``, made up from the azimuth of a cloud stored beam by beam
+    without a time field; used only once the front end finds the clouds are not
+    motion-compensated (``slam.odometry.layout_time``), else None.
     """
 
     stamp: float
@@ -34,6 +37,7 @@ class Scan:
     time: np.ndarray | None = None
     index: int = 0
     odom: np.ndarray | None = None
+    layout_time: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -48,6 +52,7 @@ class Scan:
             time=None if self.time is None else self.time[mask],
             index=self.index,
             odom=self.odom,
+            layout_time=None if self.layout_time is None else self.layout_time[mask],
         )
 
 

@@ -80,6 +80,12 @@ def print_run_summary(summary: dict[str, Any]) -> None:
     )
     if metrics.get("sensor"):
         eprint(f"sensor: {metrics['sensor']}")
+    share = (metrics.get("frontend_means") or {}).get("layout_time_deskewed")
+    if share:
+        eprint(
+            "note: the clouds carry no time field and are not motion-compensated: "
+            f"deskewed with times from the azimuth ({100 * share:.0f} % of frames)"
+        )
     for note in summary.get("input_notes") or []:
         eprint(f"note: {note}")
     skipped = summary.get("skipped_messages") or {}

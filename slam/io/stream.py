@@ -82,9 +82,11 @@ class ScanStream:
         self._reorder = Reorder(islice(scans, start, None), config.reorder_window)
         self._buffer: list[Scan] = []  # the first scans, held until the beam model exists
         self._period = 0.1  # sweep period (s): median stamp step of the first scans
-        # per-point time from the layout for beam-by-beam clouds without one: only when asked
-        # for (KITTI-style clouds, in folders or bags, are published motion-compensated)
-        self._layout_time = config.layout_time == "always"
+        # per-point time from the layout for beam-by-beam clouds without one: as the time
+        # field ("always") or for the front end to try ("auto": KITTI-style clouds, in
+        # folders or bags, are published motion-compensated, an Ouster driver's are not)
+        self._layout_time = config.layout_time != "never"
+        self._layout_trusted = config.layout_time == "always"
         # scans not after the last kept one, in a row, with that last stamp: skipped when a
         # scan in order comes, or the clock stepped back (STAMP_RUN_LIMIT of them)
         self._held_back: list[tuple[Scan, float]] = []
@@ -155,8 +157,10 @@ class ScanStream:
             ring, t = self.beams.fill(scan.xyz, self._period, ring=need_ring, time=need_time)
             if need_ring:
                 scan.ring = ring
-            if need_time:
+            if need_time and self._layout_trusted:
                 scan.time = t
+            elif need_time:
+                scan.layout_time = t
         return scan
 
     def _feed(self, scan: Scan) -> Iterator[Scan]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from slam.frontend import KeyframeConfig
+from slam.odometry.layout_time import LayoutTimeConfig
 from slam.registration.ambiguity import OdometryAmbiguityConfig
 from slam.registration.information import InformationConfig
 from slam.registration.plausibility import PlausibilityConfig
@@ -60,3 +61,6 @@ class CommonConfig:
     map_min_rotation_deg: float = 0.2
     # degeneracy-aware keyframe information (``slam.registration.ambiguity``); poses unchanged
     odometry_ambiguity: OdometryAmbiguityConfig = field(default_factory=OdometryAmbiguityConfig)
+    # beam-by-beam clouds without a time field: deskew with times from the azimuth only
+    # once registrations at speed show they are not motion-compensated
+    layout_time: LayoutTimeConfig = field(default_factory=LayoutTimeConfig)

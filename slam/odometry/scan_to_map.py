@@ -26,6 +26,7 @@ from slam.odometry.estimate import Estimate
 from slam.odometry.extras import legacy_extras
 from slam.odometry.gate import TrackingGate
 from slam.odometry.keyframes import KeyframeDecision, KeyframePolicy
+from slam.odometry.layout_time import LayoutTimeTrial
 from slam.odometry.map_policy import MapInsertPolicy
 from slam.odometry.motion import MotionModel
 from slam.odometry.search import StartSearch
@@ -85,6 +86,8 @@ class ScanToMapFrontend:
         # velocity prediction of a tracked motion (a front end may take it as a prior);
         # None during searches, hypotheses and lost tracking
         self.tracked_horizon: float | None = None
+        # beam-by-beam clouds without a time field: compensated or not (``layout_time``)
+        self.layout_time = LayoutTimeTrial(common.layout_time)
 
     # ------------------------------------------------------------------ to implement
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
@@ -164,7 +167,8 @@ class ScanToMapFrontend:
             return T_pred
         self._before_deskew(scan, work, f.timings)
         t = time.perf_counter()
-        work = self.motion.deskew(work)
+        raw = work
+        work = self.motion.deskew(self.layout_time.reading(work))
         f.timings["deskew_ms"] = (time.perf_counter() - t) * 1e3
         f.work = work
         f.scan_state = self._scan_state()
@@ -181,12 +185,20 @@ class ScanToMapFrontend:
                 f.diag.start_hypotheses = n
             else:
                 self.tracked_horizon = self._tracked_horizon(f.stamp)
+                step = None
+                if self.tracked_horizon is not None:
+                    step = float(np.linalg.norm(self.motion.T_motion[:3, 3]))
                 try:
-                    f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
+                    if self.layout_time.due(raw, step):
+                        f.est, f.work = self._layout_trial(raw, work, T_pred, f)
+                    else:
+                        f.est = self._estimate(work, T_pred, f.timings, wide=self.gate.lost)
                 finally:
                     self.tracked_horizon = None
             f.diag.skipped = f.est.skipped
             f.diag.counts = f.est.counts
+            if raw.layout_time is not None:  # made-up times: whether this frame used them
+                f.diag.counts["layout_time_deskewed"] = int(f.work.time is not None)
             f.diag.registration = f.est.registration
             f.ground_plane = f.est.ground_plane
         except RegistrationError as exc:
@@ -196,6 +208,30 @@ class ScanToMapFrontend:
         has_own = f.est is not None and f.est.filtered is not None
         f.filtered = f.est.filtered if has_own else work.xyz
         return T_pred
+
+    def _layout_trial(
+        self, raw: Scan, plain: Scan, T_pred: np.ndarray, f: _Frame
+    ) -> tuple[Estimate, Scan]:
+        """Register ``plain`` (as read) and ``raw`` deskewed with its made-up layout times;
+        the one that fits the map better is this frame's, and a vote on whether the
+        clouds are motion-compensated (``LayoutTimeTrial``)."""
+        plain_est = self._estimate(plain, T_pred, f.timings, wide=False)
+        plain_state = self._scan_state()
+        self._restore_scan_state(f.scan_state)
+        timed = self.motion.deskew(self.layout_time.timed(raw))
+        try:
+            timed_est = self._estimate(timed, T_pred, f.timings, wide=False)
+        except RegistrationError:
+            timed_est = None
+
+        def rmse(est: Estimate | None) -> float:
+            ok = est is not None and est.result is not None and est.skipped is None
+            return float(est.result.rmse) if ok else np.inf
+
+        if self.layout_time.vote(rmse(plain_est), rmse(timed_est), f.index):
+            return timed_est, timed
+        self._restore_scan_state(plain_state)
+        return plain_est, plain
 
     def _tracked_horizon(self, stamp: float) -> float | None:
         """Seconds from the last frame to ``stamp`` when the prediction comes from a tracked
