@@ -33,12 +33,14 @@ from slam.mapping.grid2d import (
     RegionDivision,
     compose2d,
     inverse2d,
+    is_stale_reading,
     matrix_to_pose2,
     planar_information,
     planar_points,
     pose2_to_matrix,
     predict2d,
     transform2d,
+    wheel_step,
     wrap,
 )
 from slam.mapping.scan_window2d import ScanWindow
@@ -80,6 +82,9 @@ class Dpcr2d:
                        "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
+        # stale_wheels: the motion registered since self._odom was new (None: not stale)
+        self._since_new: np.ndarray | None = None
+        self._stale = False  # this frame's wheel reading repeats the last new one
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
         self._odom_err2 = np.array([0.05**2, np.radians(2.0) ** 2])
@@ -363,7 +368,12 @@ class Dpcr2d:
             else self.pose
         )
         from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
-        self._odom = odom
+        stale = cfg.stale_wheels and is_stale_reading(self._odom, odom)
+        if from_wheels and not stale and self._since_new is not None:
+            predicted = compose2d(self.pose, wheel_step(self._odom, odom, self._since_new))
+        if not stale:  # a new reading (stale: the last new one stays the wheels' anchor)
+            self._odom, self._since_new = odom, None
+        self._stale = stale
         if len(pts) < cfg.min_points:
             diag.skipped = f"too few points ({len(pts)})"
             return predicted, TrackingStatus.PREDICTED
@@ -491,6 +501,9 @@ class Dpcr2d:
         pose, status = self._track(scan, pts, diag)
         if status is not TrackingStatus.PREDICTED:  # lost until a registration is trusted
             self._lost = status is TrackingStatus.LOST
+        if self._stale:  # the motion the scans give while the wheels repeat themselves
+            step = compose2d(inverse2d(self.pose), pose)
+            self._since_new = step if self._since_new is None else compose2d(self._since_new, step)
         previous, self.pose = self.pose, pose
         t = time.perf_counter()
         self._add_to_submap(pts)

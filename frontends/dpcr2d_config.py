@@ -78,6 +78,13 @@ class Dpcr2dConfig:
     wall 20 deg off the wheels and the scans). start_frames: without wheel odometry the
     first registrations of these frames search the motion (``start``, a correlative
     window around the constant-velocity prediction) instead of assuming rest.
+    stale_wheels: a wheel reading that repeats the last one exactly did not update
+    (``slam.mapping.grid2d.is_stale_reading``): the prediction of such scans stays the
+    last pose (as with a robot at rest), and the first new reading after them is taken
+    as the motion since the last new one less the motion the scans registered meanwhile
+    (``wheel_step``). Off, a stalled odometry's catch-up step (MIT-CSAIL: 4 stale
+    readings at 5 Hz, then up to 0.95 m / 86 deg at once) is a prediction, and a wheel
+    prior, of the stall's motion counted twice, which the first registration cannot undo.
 
     graph_info_scale: a keyframe's information (the odometry factor of the graph) is the
     model of ``planar_information`` (2 cm + 2 %, 0.5 deg + 2 % of the turn) times this:
@@ -147,6 +154,7 @@ class Dpcr2dConfig:
     wheel_check_distance: float = 0.15
     wheel_check_inlier_m: float = 0.05
     start_frames: int = 3
+    stale_wheels: bool = False
     graph_info_scale: float = 64.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
