@@ -33,12 +33,12 @@ from slam.mapping.grid2d import (
     RegionDivision,
     compose2d,
     inverse2d,
-    is_stale_reading,
     matrix_to_pose2,
     planar_information,
     planar_points,
     pose2_to_matrix,
     predict2d,
+    stale_parts,
     transform2d,
     wheel_step,
     wrap,
@@ -82,9 +82,13 @@ class Dpcr2d:
                        "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
-        # stale_wheels: the motion registered since self._odom was new (None: not stale)
-        self._since_new: np.ndarray | None = None
-        self._stale = False  # this frame's wheel reading repeats the last new one
+        # stale_wheels: the last readings whose position / heading were new, and the motion
+        # the scans registered since (SE(2) / rad; None: that part not stale since)
+        self._xy_new: np.ndarray | None = None
+        self._since_xy: np.ndarray | None = None
+        self._heading_new: float | None = None
+        self._since_heading: float | None = None
+        self._stale = (False, False)  # this frame's reading repeats position, heading
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
         self._odom_err2 = np.array([0.05**2, np.radians(2.0) ** 2])
@@ -368,12 +372,9 @@ class Dpcr2d:
             else self.pose
         )
         from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
-        stale = cfg.stale_wheels and is_stale_reading(self._odom, odom)
-        if from_wheels and not stale and self._since_new is not None:
-            predicted = compose2d(self.pose, wheel_step(self._odom, odom, self._since_new))
-        if not stale:  # a new reading (stale: the last new one stays the wheels' anchor)
-            self._odom, self._since_new = odom, None
-        self._stale = stale
+        if cfg.stale_wheels and odom is not None:
+            predicted = self._catch_up(predicted, odom, from_wheels)
+        self._odom = odom
         if len(pts) < cfg.min_points:
             diag.skipped = f"too few points ({len(pts)})"
             return predicted, TrackingStatus.PREDICTED
@@ -405,6 +406,25 @@ class Dpcr2d:
         if from_wheels:
             self._learn_odometry_noise(predicted, res.pose)
         return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
+
+    def _catch_up(self, predicted: np.ndarray, odom: np.ndarray, from_wheels: bool) -> np.ndarray:
+        """``stale_wheels``: the prediction from the wheels with the parts of the reading
+        that were stale taken from the last reading where they were new, less what the
+        scans registered since (``wheel_step``); the anchors updated for the next frame."""
+        stale_xy, stale_heading = stale_parts(self._odom, odom)
+        catch_xy = not stale_xy and self._since_xy is not None
+        catch_heading = not stale_heading and self._since_heading is not None
+        if from_wheels and (catch_xy or catch_heading):
+            step = wheel_step(self._odom, odom, self._xy_new if catch_xy else None,
+                              self._since_xy, self._heading_new if catch_heading else None,
+                              self._since_heading)  # fmt: skip
+            predicted = compose2d(self.pose, step)
+        if not stale_xy:
+            self._xy_new, self._since_xy = odom, None
+        if not stale_heading:
+            self._heading_new, self._since_heading = float(odom[2]), None
+        self._stale = (stale_xy, stale_heading)
+        return predicted
 
     def _refine(self, pts: np.ndarray, res: PlicpResult, prior: dict, counts: dict) -> PlicpResult:
         """The first registration refined by PLICP on the local lines of the raw points
@@ -501,9 +521,13 @@ class Dpcr2d:
         pose, status = self._track(scan, pts, diag)
         if status is not TrackingStatus.PREDICTED:  # lost until a registration is trusted
             self._lost = status is TrackingStatus.LOST
-        if self._stale:  # the motion the scans give while the wheels repeat themselves
+        if any(self._stale):  # the motion the scans give while the wheels repeat themselves
             step = compose2d(inverse2d(self.pose), pose)
-            self._since_new = step if self._since_new is None else compose2d(self._since_new, step)
+            if self._stale[0]:
+                since = self._since_xy
+                self._since_xy = step if since is None else compose2d(since, step)
+            if self._stale[1]:
+                self._since_heading = float(step[2]) + (self._since_heading or 0.0)
         previous, self.pose = self.pose, pose
         t = time.perf_counter()
         self._add_to_submap(pts)

@@ -78,13 +78,14 @@ class Dpcr2dConfig:
     wall 20 deg off the wheels and the scans). start_frames: without wheel odometry the
     first registrations of these frames search the motion (``start``, a correlative
     window around the constant-velocity prediction) instead of assuming rest.
-    stale_wheels: a wheel reading that repeats the last one exactly did not update
-    (``slam.mapping.grid2d.is_stale_reading``): the prediction of such scans stays the
-    last pose (as with a robot at rest), and the first new reading after them is taken
-    as the motion since the last new one less the motion the scans registered meanwhile
-    (``wheel_step``). Off, a stalled odometry's catch-up step (MIT-CSAIL: 4 stale
-    readings at 5 Hz, then up to 0.95 m / 86 deg at once) is a prediction, and a wheel
-    prior, of the stall's motion counted twice, which the first registration cannot undo.
+    stale_wheels: the position or the heading of a wheel reading that repeats the last
+    one exactly did not update (``slam.mapping.grid2d.stale_parts``): such scans are
+    predicted as before (that part unchanged), and at the first new value the part is
+    taken as the wheels' motion since its last new value less the motion the scans
+    registered meanwhile (``wheel_step``). Off, a stalled odometry's catch-up step
+    (MIT-CSAIL at 5 Hz: 3 - 4 stale readings, then up to 0.95 m / 86 deg at once) is a
+    prediction, and a wheel prior, of the stall's motion counted twice, which the first
+    registration cannot undo (MIT-CSAIL's front end turned 41 - 53 deg too far there).
 
     graph_info_scale: a keyframe's information (the odometry factor of the graph) is the
     model of ``planar_information`` (2 cm + 2 %, 0.5 deg + 2 % of the turn) times this:

@@ -348,26 +348,38 @@ def predict2d(
     return compose2d(pose, motion)
 
 
-def is_stale_reading(odom_prev: np.ndarray | None, odom: np.ndarray | None) -> bool:
-    """True when the wheel odometry repeats its last reading exactly: it did not update
-    (a robot at rest still reports its encoders' noise-free pose, but so does an odometry
-    stream that stalls while the robot moves), so the reading says nothing of the motion."""
-    return odom_prev is not None and odom is not None and bool(np.array_equal(odom_prev, odom))
+def stale_parts(odom_prev: np.ndarray | None, odom: np.ndarray | None) -> tuple[bool, bool]:
+    """(position, heading) of the wheel reading ``odom`` repeated exactly from the last one:
+    that part did not update, so it says nothing of the motion (MIT-CSAIL's odometry stalls
+    for 3 - 4 scans at 5 Hz, the position alone or with the heading, while the robot
+    moves; a robot at rest repeats both, which changes nothing here)."""
+    if odom_prev is None or odom is None:
+        return False, False
+    return bool(np.array_equal(odom_prev[:2], odom[:2])), bool(odom_prev[2] == odom[2])
 
 
 def wheel_step(
-    odom_new: np.ndarray, odom: np.ndarray, registered_since: np.ndarray | None
+    odom_prev: np.ndarray,
+    odom: np.ndarray,
+    xy_new: np.ndarray | None = None,
+    since_xy: np.ndarray | None = None,
+    heading_new: float | None = None,
+    since_heading: float | None = None,
 ) -> np.ndarray:
-    """The wheel odometry's motion to this scan (x, y m, theta rad; the last scan's frame):
-    the motion since the last new reading ``odom_new`` (odom_new^-1 o odom), less the
-    motion ``registered_since`` that the scans already gave over the scans that repeated
-    ``odom_new`` (none: no stale reading in between). A stalled odometry reports the
-    stall's whole motion at once (MIT-CSAIL, 5 Hz: 4 repeated readings, then 0.5 - 0.95 m
-    and up to 86 deg in one step); taken as one step's motion it is counted twice."""
-    step = compose2d(inverse2d(odom_new), odom)
-    if registered_since is None:
-        return step
-    return compose2d(inverse2d(registered_since), step)
+    """The wheel odometry's motion (x, y m, theta rad; the last scan's frame) from the last
+    scan, whose reading is ``odom_prev``, to this one (``odom``). After stale readings the
+    part that stalled is taken from the last reading where it was new: the translation
+    from ``xy_new`` (that whole reading) less ``since_xy``, the motion the scans registered
+    since that scan (SE(2), its frame); the heading from ``heading_new`` (rad) less
+    ``since_heading`` (rad). A stalled odometry reports the stall's whole motion at once
+    (MIT-CSAIL: up to 0.95 m and 86 deg in one 0.2 s step); taken as one step's motion it
+    is counted twice. With no stale reading (the ``since`` None) it is odom_prev^-1 o odom."""
+    step = compose2d(inverse2d(odom_prev), odom)
+    if xy_new is not None and since_xy is not None:
+        step[:2] = compose2d(inverse2d(since_xy), compose2d(inverse2d(xy_new), odom))[:2]
+    if heading_new is not None and since_heading is not None:
+        step[2] = wrap(float(odom[2]) - heading_new - since_heading)
+    return step
 
 
 def planar_information(relative: np.ndarray) -> np.ndarray:
