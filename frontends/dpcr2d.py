@@ -31,6 +31,7 @@ from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
     OccupancyGrid,
     RegionDivision,
+    StaleWheels,
     compose2d,
     inverse2d,
     matrix_to_pose2,
@@ -79,15 +80,13 @@ class Dpcr2d:
         self.region: int | None = None
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0,
-                       "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0}  # fmt: skip
+                       "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0,
+                       "stalls": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
         # stale_wheels: the last readings whose position / heading were new, and the motion
-        # the scans registered since (SE(2) / rad; None: that part not stale since)
-        self._xy_new: np.ndarray | None = None
-        self._since_xy: np.ndarray | None = None
-        self._heading_new: float | None = None
-        self._since_heading: float | None = None
+        # the scans registered since
+        self._wheels = StaleWheels()
         self._stale = (False, False)  # this frame's reading repeats position, heading
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
@@ -408,21 +407,18 @@ class Dpcr2d:
         return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
 
     def _catch_up(self, predicted: np.ndarray, odom: np.ndarray, from_wheels: bool) -> np.ndarray:
-        """``stale_wheels``: the prediction from the wheels with the parts of the reading
-        that were stale taken from the last reading where they were new, less what the
-        scans registered since (``wheel_step``); the anchors updated for the next frame."""
+        """``stale_wheels``: the prediction from the wheels, a stale part of the reading
+        caught up when the step is a stall's (``slam.mapping.grid2d.wheel_step``); the
+        stale parts updated for the next frame."""
+        cfg = self.cfg
         stale_xy, stale_heading = stale_parts(self._odom, odom)
-        catch_xy = not stale_xy and self._since_xy is not None
-        catch_heading = not stale_heading and self._since_heading is not None
-        if from_wheels and (catch_xy or catch_heading):
-            step = wheel_step(self._odom, odom, self._xy_new if catch_xy else None,
-                              self._since_xy, self._heading_new if catch_heading else None,
-                              self._since_heading)  # fmt: skip
-            predicted = compose2d(self.pose, step)
-        if not stale_xy:
-            self._xy_new, self._since_xy = odom, None
-        if not stale_heading:
-            self._heading_new, self._since_heading = float(odom[2]), None
+        if from_wheels:
+            step, xy, heading = wheel_step(self._odom, odom, self.motion, self._wheels,
+                                           cfg.stall_m, np.radians(cfg.stall_deg))  # fmt: skip
+            if xy or heading:
+                predicted = compose2d(self.pose, step)
+                self.counts["stalls"] += 1
+        self._wheels.update(odom, stale_xy, stale_heading)
         self._stale = (stale_xy, stale_heading)
         return predicted
 
@@ -522,12 +518,7 @@ class Dpcr2d:
         if status is not TrackingStatus.PREDICTED:  # lost until a registration is trusted
             self._lost = status is TrackingStatus.LOST
         if any(self._stale):  # the motion the scans give while the wheels repeat themselves
-            step = compose2d(inverse2d(self.pose), pose)
-            if self._stale[0]:
-                since = self._since_xy
-                self._since_xy = step if since is None else compose2d(since, step)
-            if self._stale[1]:
-                self._since_heading = float(step[2]) + (self._since_heading or 0.0)
+            self._wheels.registered(compose2d(inverse2d(self.pose), pose), *self._stale)
         previous, self.pose = self.pose, pose
         t = time.perf_counter()
         self._add_to_submap(pts)

@@ -9,22 +9,62 @@ import pytest
 
 from frontends.dpcr2d import Dpcr2d
 from frontends.dpcr2d_config import Dpcr2dConfig
-from slam.mapping.grid2d import compose2d, inverse2d, matrix_to_pose2, stale_parts, wheel_step
+from slam.mapping.grid2d import (
+    StaleWheels,
+    compose2d,
+    inverse2d,
+    matrix_to_pose2,
+    stale_parts,
+    wheel_step,
+)
 from slam.sim.floorplan2d import simulate2d
 from slam.types import Scan
 
 
-def test_wheel_step_takes_out_what_the_scans_registered():
+def _stalled(since: np.ndarray, a: np.ndarray, parts: str) -> StaleWheels:
+    stale = StaleWheels()
+    stale.update(a, False, False)
+    stale.registered(since, "xy" in parts, "heading" in parts)
+    return stale
+
+
+def test_a_stall_s_catch_up_is_not_counted_twice():
+    """MIT-CSAIL's scans 320 - 325 (4 stale readings): the wheels report 0.85 m / 49.7 deg
+    at once, the scans registered 0.64 m / 44 deg meanwhile; the step is what is left."""
     a = np.array([1.0, 2.0, 0.3])
-    stall = np.array([0.6, 0.1, np.radians(40.0)])  # registered while the wheels repeated a
-    last = np.array([0.2, 0.0, np.radians(8.0)])  # the step to this scan
+    stall = np.array([0.6, 0.1, np.radians(44.0)])  # registered while the wheels repeated a
+    last = np.array([0.17, 0.0, np.radians(10.0)])  # the step to this scan
+    motion = np.array([0.16, 0.0, np.radians(11.0)])  # the robot's last step
     odom = compose2d(a, compose2d(stall, last))
-    assert np.allclose(wheel_step(a, odom), compose2d(stall, last), atol=1e-12)
-    assert np.allclose(wheel_step(a, odom, a, stall, a[2], stall[2]), last, atol=1e-12)
-    # the position alone stalled: the heading of the step is the wheels' own
+    step, xy, heading = wheel_step(a, odom, motion, _stalled(stall, a, "xy heading"), 0.1,
+                                   np.radians(5.0))  # fmt: skip
+    assert xy and heading and np.allclose(step, last, atol=1e-12)
+    # the position alone stalled (the heading kept updating: MIT-CSAIL's scans 554 - 556)
     prev = np.array([1.0, 2.0, 0.3 + stall[2]])
-    step = wheel_step(prev, odom, a, stall)
-    assert np.allclose(step[:2], last[:2], atol=1e-12) and np.isclose(step[2], last[2])
+    step, xy, heading = wheel_step(prev, odom, motion, _stalled(stall, a, "xy"), 0.1, 0.1)
+    assert xy and not heading and np.allclose(step, last, atol=1e-12)
+    # no stale reading: the plain step
+    step, xy, heading = wheel_step(a, odom, motion, StaleWheels(), 0.1, 0.1)
+    assert not (xy or heading) and np.allclose(step, compose2d(stall, last), atol=1e-12)
+
+
+def test_a_turn_on_the_spot_is_not_a_stall():
+    """The position repeats while the robot turns on the spot (FR079's scans 1440 - 1442),
+    and the scans registered 3 cm of the laser's own swing meanwhile: the robot then
+    moves off by 1 cm, as the plain step says, not 3 cm back."""
+    a = np.array([1.0, 2.0, 0.3])
+    turned = np.array([0.03, 0.0, np.radians(24.0)])
+    odom = compose2d(a + [0.0, 0.0, turned[2]], np.array([0.01, 0.0, np.radians(8.0)]))
+    prev = a + [0.0, 0.0, turned[2]]
+    motion = np.array([0.0, 0.0, np.radians(8.0)])
+    step, xy, heading = wheel_step(prev, odom, motion, _stalled(turned, a, "xy"), 0.1,
+                                   np.radians(5.0))  # fmt: skip
+    assert not xy and not heading
+    assert np.allclose(step, compose2d(inverse2d(prev), odom), atol=1e-12)
+
+
+def test_stale_parts():
+    a = np.array([1.0, 2.0, 0.3])
     assert stale_parts(a, a.copy()) == (True, True)
     assert stale_parts(a, a + [0.0, 0.0, 1e-9]) == (True, False)
     assert stale_parts(a, a + [1e-9, 0.0, 0.0]) == (False, True)
