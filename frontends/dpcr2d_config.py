@@ -159,7 +159,7 @@ class Dpcr2dConfig:
     wheel_check_distance: float = 0.15
     wheel_check_inlier_m: float = 0.05
     start_frames: int = 3
-    stale_wheels: bool = False
+    stale_wheels: bool = True
     stall_m: float = 0.1
     stall_deg: float = 5.0
     graph_info_scale: float = 64.0
