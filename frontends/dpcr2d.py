@@ -31,6 +31,7 @@ from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
     OccupancyGrid,
     RegionDivision,
+    StaleWheels,
     compose2d,
     inverse2d,
     matrix_to_pose2,
@@ -38,7 +39,9 @@ from slam.mapping.grid2d import (
     planar_points,
     pose2_to_matrix,
     predict2d,
+    stale_parts,
     transform2d,
+    wheel_step,
     wrap,
 )
 from slam.mapping.scan_window2d import ScanWindow
@@ -77,9 +80,14 @@ class Dpcr2d:
         self.region: int | None = None
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0,
-                       "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0}  # fmt: skip
+                       "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0,
+                       "stalls": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
+        # stale_wheels: the last readings whose position / heading were new, and the motion
+        # the scans registered since
+        self._wheels = StaleWheels()
+        self._stale = (False, False)  # this frame's reading repeats position, heading
         # running wheel-odometry error^2 (m^2, rad^2), from a wide start (5 cm, 2 deg) until
         # the robot has shown its wheels (about 20 accepted frames)
         self._odom_err2 = np.array([0.05**2, np.radians(2.0) ** 2])
@@ -363,6 +371,8 @@ class Dpcr2d:
             else self.pose
         )
         from_wheels = bool(use and self.frame and self._odom is not None and odom is not None)
+        if cfg.stale_wheels and odom is not None:
+            predicted = self._catch_up(predicted, odom, from_wheels)
         self._odom = odom
         if len(pts) < cfg.min_points:
             diag.skipped = f"too few points ({len(pts)})"
@@ -395,6 +405,22 @@ class Dpcr2d:
         if from_wheels:
             self._learn_odometry_noise(predicted, res.pose)
         return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED
+
+    def _catch_up(self, predicted: np.ndarray, odom: np.ndarray, from_wheels: bool) -> np.ndarray:
+        """``stale_wheels``: the prediction from the wheels, a stale part of the reading
+        caught up when the step is a stall's (``slam.mapping.grid2d.wheel_step``); the
+        stale parts updated for the next frame."""
+        cfg = self.cfg
+        stale_xy, stale_heading = stale_parts(self._odom, odom)
+        if from_wheels:
+            step, xy, heading = wheel_step(self._odom, odom, self.motion, self._wheels,
+                                           cfg.stall_m, np.radians(cfg.stall_deg))  # fmt: skip
+            if xy or heading:
+                predicted = compose2d(self.pose, step)
+                self.counts["stalls"] += 1
+        self._wheels.update(odom, stale_xy, stale_heading)
+        self._stale = (stale_xy, stale_heading)
+        return predicted
 
     def _refine(self, pts: np.ndarray, res: PlicpResult, prior: dict, counts: dict) -> PlicpResult:
         """The first registration refined by PLICP on the local lines of the raw points
@@ -491,6 +517,8 @@ class Dpcr2d:
         pose, status = self._track(scan, pts, diag)
         if status is not TrackingStatus.PREDICTED:  # lost until a registration is trusted
             self._lost = status is TrackingStatus.LOST
+        if any(self._stale):  # the motion the scans give while the wheels repeat themselves
+            self._wheels.registered(compose2d(inverse2d(self.pose), pose), *self._stale)
         previous, self.pose = self.pose, pose
         t = time.perf_counter()
         self._add_to_submap(pts)

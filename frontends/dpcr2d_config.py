@@ -78,6 +78,18 @@ class Dpcr2dConfig:
     wall 20 deg off the wheels and the scans). start_frames: without wheel odometry the
     first registrations of these frames search the motion (``start``, a correlative
     window around the constant-velocity prediction) instead of assuming rest.
+    stale_wheels: the position or the heading of a wheel reading that repeats the last
+    one exactly did not update (``slam.mapping.grid2d.stale_parts``); at the first new
+    value, a step that departs from the robot's last motion by more than ``stall_m`` /
+    ``stall_deg`` is a stall's catch-up when the wheels' motion since that part's last
+    new value, less the motion the scans registered meanwhile, lies closer to it
+    (``wheel_step``; otherwise the robot was at rest in that part, as in a turn on the
+    spot). Off, a stalled odometry's catch-up step (MIT-CSAIL at 5 Hz: 2 - 4 stale
+    readings, then up to 0.95 m / 86 deg at once) is a prediction, and a wheel prior, of
+    the stall's motion counted twice, which the first registration cannot undo
+    (MIT-CSAIL's front end turned 41 - 53 deg too far there). The tolerances are more
+    than an indoor robot's speed changes between two scans and less than a stall's
+    catch-up.
 
     graph_info_scale: a keyframe's information (the odometry factor of the graph) is the
     model of ``planar_information`` (2 cm + 2 %, 0.5 deg + 2 % of the turn) times this:
@@ -147,6 +159,9 @@ class Dpcr2dConfig:
     wheel_check_distance: float = 0.15
     wheel_check_inlier_m: float = 0.05
     start_frames: int = 3
+    stale_wheels: bool = True
+    stall_m: float = 0.1
+    stall_deg: float = 5.0
     graph_info_scale: float = 64.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)

@@ -79,3 +79,22 @@ def test_front_end_check_is_reported_and_applied(mit_run):
     _, graph = read_trajectory(out / "trajectory.tum")
     if stats["kept_frontend"]:
         assert np.abs(graph[:, :3, 3] - fe[:, :3, 3]).max() < 1e-6
+
+
+def test_a_stall_of_the_wheels_is_not_counted_twice(mit_run):
+    """Scans 321 - 324 repeat scan 320's wheel reading, scan 325 reports 0.85 m / 49.7 deg
+    at once (``Dpcr2dConfig.stale_wheels``): the front end turns as the wheels do over
+    320 -> 325, not 93.5 deg (the catch-up counted as one step, as before the option).
+    Measured: 51.0 deg."""
+    out, _ = mit_run
+    log = CarmenSource(shared_path("laser2d", "mit-csail.clf.bz2"))
+    scans = [scan for _, scan in zip(range(326), log, strict=False)]
+    stamps = np.array([scan.stamp for scan in scans], dtype=np.float64)
+    odom = np.array([scan.odom for scan in scans], dtype=np.float64)
+    st, poses = read_trajectory(out / "odometry.tum")
+    k = np.searchsorted(st, stamps[[320, 325]] - 1e-4)
+    yaw = np.arctan2(poses[k, 1, 0], poses[k, 0, 0])
+    turn = np.degrees(np.angle(np.exp(1j * (yaw[1] - yaw[0]))))
+    wheels = np.degrees(np.angle(np.exp(1j * (odom[325, 2] - odom[320, 2]))))
+    assert abs(wheels - 49.7) < 0.1
+    assert abs(turn - wheels) < 5.0

@@ -348,6 +348,85 @@ def predict2d(
     return compose2d(pose, motion)
 
 
+@dataclass
+class StaleWheels:
+    """The wheel readings' stale parts: xy_new the last reading whose position was new and
+    since_xy the motion the scans registered since its scan (SE(2), that scan's frame;
+    None: the position has not repeated since); heading_new (rad) and since_heading
+    (rad) the same for the heading."""
+
+    xy_new: np.ndarray | None = None
+    since_xy: np.ndarray | None = None
+    heading_new: float | None = None
+    since_heading: float | None = None
+
+    def update(self, odom: np.ndarray, stale_xy: bool, stale_heading: bool) -> None:
+        """After a reading: a part that is new becomes the anchor, its registered motion
+        cleared."""
+        if not stale_xy:
+            self.xy_new, self.since_xy = odom, None
+        if not stale_heading:
+            self.heading_new, self.since_heading = float(odom[2]), None
+
+    def registered(self, step: np.ndarray, stale_xy: bool, stale_heading: bool) -> None:
+        """The scans' motion of a scan (SE(2), the last scan's frame) added to the stale
+        parts' registered motion."""
+        if stale_xy:
+            self.since_xy = step if self.since_xy is None else compose2d(self.since_xy, step)
+        if stale_heading:
+            self.since_heading = float(step[2]) + (self.since_heading or 0.0)
+
+
+def stale_parts(odom_prev: np.ndarray | None, odom: np.ndarray | None) -> tuple[bool, bool]:
+    """(position, heading) of the wheel reading ``odom`` repeated exactly from the last one:
+    that part did not update, so it says nothing of the motion (MIT-CSAIL's odometry stalls
+    for 3 - 4 scans at 5 Hz, the position alone or with the heading, while the robot
+    moves; a robot at rest repeats both, which changes nothing here)."""
+    if odom_prev is None or odom is None:
+        return False, False
+    return bool(np.array_equal(odom_prev[:2], odom[:2])), bool(odom_prev[2] == odom[2])
+
+
+def wheel_step(
+    odom_prev: np.ndarray,
+    odom: np.ndarray,
+    motion: np.ndarray,
+    stale: StaleWheels,
+    stall_m: float,
+    stall_rad: float,
+) -> tuple[np.ndarray, bool, bool]:
+    """The wheel odometry's motion (x, y m, theta rad; the last scan's frame) from the
+    last scan (reading ``odom_prev``) to this one (``odom``), and whether its position /
+    heading were taken as a stall's catch-up. A part of the reading that repeated exactly
+    on the scans before (``stale``: the last reading where it was new and the motion the
+    scans registered since) is either
+
+    - a stall's catch-up: the wheels' motion since that reading less what the scans
+      registered meanwhile (MIT-CSAIL's odometry stalls for 2 - 4 scans at 5 Hz, then
+      reports up to 0.95 m / 86 deg in one 0.2 s step: taken as one step, the stall's
+      motion is counted twice), or
+    - the robot at rest in that part (in place, or turning in place): the plain step
+      odom_prev^-1 o odom.
+
+    It is a catch-up when the plain step departs from the robot's last motion ``motion``
+    (the constant-velocity step) by more than ``stall_m`` (m) / ``stall_rad`` and the
+    catch-up lies closer to it: a robot's speed changes little between two scans."""
+    plain = compose2d(inverse2d(odom_prev), odom)
+    step = plain.copy()
+    caught_xy = caught_heading = False
+    if stale.xy_new is not None and stale.since_xy is not None:
+        t = compose2d(inverse2d(stale.since_xy), compose2d(inverse2d(stale.xy_new), odom))[:2]
+        off = float(np.hypot(*(plain[:2] - motion[:2])))
+        if off > stall_m and float(np.hypot(*(t - motion[:2]))) < off:
+            step[:2], caught_xy = t, True
+    if stale.heading_new is not None and stale.since_heading is not None:
+        r = float(wrap(float(odom[2]) - stale.heading_new - stale.since_heading))
+        off = abs(float(wrap(plain[2] - motion[2])))
+        if off > stall_rad and abs(float(wrap(r - motion[2]))) < off:
+            step[2], caught_heading = r, True
+    return step, caught_xy, caught_heading
+
+
 def planar_information(relative: np.ndarray) -> np.ndarray:
     """6x6 information (rotation first) of a planar motion: 2 cm + 2 % of the distance
     and 0.5 deg + 2 % of the turn in the plane; z, roll and pitch held at 1 mm / 0.06 deg
