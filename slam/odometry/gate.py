@@ -49,6 +49,12 @@ class TrackingGate:
         self.trusted_stamp: float | None = None
 
     @property
+    def velocity_known(self) -> bool:
+        """Two chained trusted poses give the constant-velocity prediction (none since a
+        hypothesised dropped sweep)."""
+        return self.n_trusted >= 2 and self.n_chained >= 2
+
+    @property
     def lost(self) -> bool:
         """Whether the last frame had no trusted registration (search wider)."""
         return self.lost_frames > 0
@@ -69,8 +75,7 @@ class TrackingGate:
         since = self._clock.duration(self.trusted_stamp, stamp)
         if missed and since is not None:
             since += missed * (self._clock.period() or since)
-        known = self.n_trusted >= 2 and self.n_chained >= 2
-        off_prediction = np.linalg.inv(T_pred) @ pose if known else np.eye(4)
+        off_prediction = np.linalg.inv(T_pred) @ pose if self.velocity_known else np.eye(4)
         return implausibility(
             res,
             min_eigenvalue,
@@ -94,8 +99,7 @@ class TrackingGate:
             cfg.enabled
             and cfg.missed_frames > 0
             and not self.lost
-            and self.n_trusted >= 2
-            and self.n_chained >= 2
+            and self.velocity_known
             and quality_problem(res, min_eigenvalue, self.normal, cfg) is None
         )
 

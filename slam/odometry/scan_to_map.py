@@ -236,7 +236,7 @@ class ScanToMapFrontend:
     def _tracked_horizon(self, stamp: float) -> float | None:
         """Seconds from the last frame to ``stamp`` when the prediction comes from a tracked
         velocity (two chained trusted poses, tracking not lost), else None."""
-        if self.gate.lost or self.gate.n_trusted < 2 or self.gate.n_chained < 2:
+        if self.gate.lost or not self.gate.velocity_known:
             return None
         gap = self.clock.since_last(stamp)
         return gap if gap is not None and gap > 0 else self.clock.period()

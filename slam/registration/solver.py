@@ -182,6 +182,7 @@ def solve_weighted(
     the Hessian and cost returned are the scan's alone (its own information).
     """
     lin, cost_of = (_linearise, _cost) if reference else (kernels.linearise, kernels.cost)
+    step_cost = cost_of if prior is None else _with_prior(cost_of, prior)
     T = np.asarray(init_T, dtype=np.float64).copy()
     mu = 1e-6
     prev_cost, prev_xi = None, None
@@ -194,11 +195,10 @@ def solve_weighted(
             associate, T, lin, reference, min_inliers
         )
         n_in = len(p)
-        H_step, b_step, total, step_cost = H, b, cost, cost_of
+        H_step, b_step, total = H, b, cost
         if prior is not None:
             H_p, b_p, c_p = prior.linearised(T)
             H_step, b_step, total = H + H_p, b + b_p, cost + c_p
-            step_cost = _with_prior(cost_of, prior)
         if prev_cost is not None and abs(prev_cost - total) <= fitness_epsilon * max(total, 1e-12):
             reason = "fitness"
             break
