@@ -122,7 +122,7 @@ def test_sor_keep_mask_unchanged(name, request):
     from slam.preprocess.sor import weighted_sor_terms, weighted_sor_terms_fast
 
     xyz, ring = request.getfixturevalue(name)
-    cfg = SorConfig()
+    cfg = SorConfig(mode="paper")
     tree = neighbourhoods(xyz, cfg.k)
     ref = apply_sor(xyz, cfg, tree)
     assert np.array_equal(apply_sor(xyz, cfg, neighbourhoods(xyz, cfg.k, ring=ring)), ref)

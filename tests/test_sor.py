@@ -100,8 +100,9 @@ def test_weighted_isolated_point_removed_in_dense_cloud():
 def test_apply_sor_dispatch_and_errors(scan):
     xyz, _ = scan
     assert apply_sor(xyz, SorConfig(enabled=False)).all()
-    assert np.array_equal(apply_sor(xyz, SorConfig(method="classic")), classic_sor(xyz))
-    assert np.array_equal(apply_sor(xyz, SorConfig()), weighted_sor(xyz))
+    classic = SorConfig(method="classic", mode="paper")
+    assert np.array_equal(apply_sor(xyz, classic), classic_sor(xyz))
+    assert np.array_equal(apply_sor(xyz, SorConfig(mode="paper")), weighted_sor(xyz))
     with pytest.raises(ConfigError, match="classic"):
         SorConfig(method="median")
     with pytest.raises(InputError):
@@ -242,12 +243,12 @@ def street64():
 
 
 def test_paper_mode_is_the_scan_wide_filter_of_eqs_4_to_9(scan):
-    """mode "paper" (the default) is the filter as printed: one statistic for the scan,
-    the same mask as the numpy reference of eqs. (4)-(9)."""
+    """mode "paper" is the filter as printed: one statistic for the scan, the same mask
+    as the numpy reference of eqs. (4)-(9) (the default is "banded")."""
     from slam.preprocess.sor import knn_distances, weighted_sor_terms
 
     xyz, _ = scan
-    assert SorConfig().mode == "paper"
+    assert SorConfig().mode == "banded"
     ref = weighted_sor_terms(knn_distances(xyz, 10))
     keep = apply_sor(xyz, SorConfig(mode="paper"))
     np.testing.assert_array_equal(keep, ref.d <= ref.theta)
@@ -287,8 +288,8 @@ def test_banded_keeps_the_far_field_of_a_dense_scan(street64):
     sparse far field (the poles and facades that hold a street's along axis); per range
     band the far field is judged against far points."""
     xyz, ring, r = street64
-    paper = apply_sor(xyz, SorConfig(), ring=ring)
-    banded = apply_sor(xyz, SorConfig(mode="banded"), ring=ring)
+    paper = apply_sor(xyz, SorConfig(mode="paper"), ring=ring)
+    banded = apply_sor(xyz, SorConfig(), ring=ring)
     far = (r >= 30) & (r < 50)
     assert 1 - paper[far].mean() > 0.25  # measured 0.354
     assert 1 - paper[r >= 50].mean() > 0.6  # measured 0.828
@@ -302,8 +303,8 @@ def test_banded_removes_injected_outliers_as_the_paper_filter(seed):
     """Per range band, the injected outliers of the 16-beam yard are removed as by the
     scan-wide filter (mean over seeds 0-3: 0.959 both)."""
     xyz, label = lidar_scan(seed=seed)
-    paper = apply_sor(xyz, SorConfig())
-    banded = apply_sor(xyz, SorConfig(mode="banded"))
+    paper = apply_sor(xyz, SorConfig(mode="paper"))
+    banded = apply_sor(xyz, SorConfig())
     out = label == OUTLIER
     assert 1.0 - banded[out].mean() >= 1.0 - paper[out].mean() - 0.02
     assert 1.0 - banded[out].mean() >= 0.93

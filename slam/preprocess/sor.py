@@ -10,8 +10,8 @@ every point's k-NN distances, so the filter needs the exact k-NN of every raw po
 0.111 m for the scan, 0.063 m from every 4th point, 2.6 % of the decisions flipped, and a
 sample with early exits for the certain keeps flipped few decisions but did not pay once
 the curvature correction asked for the exact rows; it was removed). On a dense sensor the
-scan-wide statistic is set by the near field: ``SorConfig.mode`` "banded" takes it per
-range band (``banded_sor``).
+scan-wide statistic is set by the near field: ``SorConfig.mode`` "banded" (the default)
+takes it per range band (``banded_sor``), "paper" for the whole scan as printed.
 """
 
 from __future__ import annotations
@@ -34,12 +34,14 @@ class SorConfig:
 
     range_adaptive and max_density_ratio only affect the weighted method (see weighted_sor).
 
-    mode: "paper" = one statistic (mu, sigma, d_avg, rho_avg of eqs. (5)-(9)) for the whole
-    scan, as printed; "banded" = the same equations with the statistics of each range band
-    (``band_edges``, m from the sensor; ``banded_sor``), so that the sparse far field of a
-    dense sensor is judged against far points, not against the near field that sets the
-    scan-wide statistic. A band of fewer than band_min_points points joins its inner
-    neighbour (the first band its outer one).
+    mode: "banded" (the default) = eqs. (4)-(9) with the statistics of each range band
+    (``band_edges``, m from the sensor; ``banded_sor``): a spinning lidar's point spacing
+    grows with range, so the far field is judged against far points, not against the near
+    field that holds most points and sets a scan-wide statistic (on a 64-beam street scan
+    "paper" removes 58 % of the returns at 50-70 m, where the features that hold the
+    street's along axis are); "paper" = one statistic (mu, sigma, d_avg, rho_avg of eqs.
+    (5)-(9)) for the whole scan, as printed. A band of fewer than band_min_points points
+    joins its inner neighbour (the first band its outer one).
     """
 
     enabled: bool = True
@@ -49,7 +51,7 @@ class SorConfig:
     delta: float = 1e-5
     range_adaptive: bool = False
     max_density_ratio: float = 1.0
-    mode: str = "paper"
+    mode: str = "banded"
     band_edges: tuple[float, ...] = (15.0, 30.0, 50.0)
     band_min_points: int = 500
 
