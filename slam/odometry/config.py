@@ -52,9 +52,12 @@ class CommonConfig:
     start_speed_step: float = 20.0  # m/s
     start_max_shift: float = 2.0  # m: at most this far apart (slow frame rates: finer steps)
     # ... and such a start replaces the prediction's result only when it converged this far
-    # (m) from it with this share more correspondences, or the prediction's did not converge
+    # (m) from it and explains the scan better by this share (``slam.odometry.search``:
+    # the share more correspondences plus start_rmse_weight x the share lower RMSE), or the
+    # prediction's did not converge
     start_min_shift: float = 0.1
     start_min_gain: float = 0.02
+    start_rmse_weight: float = 0.5
     # a trusted scan enters the map and the gate's normal only after this much motion since
     # the last one that did: a standing sensor's scans would pull departing ones back to rest
     map_min_translation: float = 0.01
