@@ -269,8 +269,9 @@ class Dpcr2d:
         delta = region.in_map(res.pose)  # map-frame correction of the submap
         local = compose2d(compose2d(inverse2d(self.pose), delta), self.pose)  # robot frame
         cfg = self.cfg
-        if (0 < cfg.second_max_m < np.hypot(local[0], local[1])
-                or 0 < cfg.second_max_deg < abs(np.degrees(local[2]))):  # fmt: skip
+        large = (0 < cfg.second_max_m < np.hypot(local[0], local[1])
+                 or 0 < cfg.second_max_deg < abs(np.degrees(local[2])))  # fmt: skip
+        if large and not self._second_evidence(target, ref, res.pose):
             self.counts["second_rejected"] += 1
             return
         if self.cfg.second_gain < 1.0:
@@ -278,6 +279,20 @@ class Dpcr2d:
                               inverse2d(self.pose))  # fmt: skip
         self._move(delta)
         timings["second_ms"] = (time.perf_counter() - t) * 1e3
+
+    def _second_evidence(self, target: np.ndarray, ref: LineReference, pose: np.ndarray) -> bool:
+        """A correction beyond ``second_max_*`` is taken when it brings a share of at least
+        ``second_evidence`` more of the submap's cells within ``second_evidence_m`` (m) of the
+        regional map than no correction (a real drift does; a distorted map does not);
+        ``second_evidence`` < 0: never."""
+        cfg = self.cfg
+        if cfg.second_evidence < 0:
+            return False
+        before, _ = ref.tree.query(target)
+        after, _ = ref.tree.query(transform2d(pose, target))
+        near = cfg.second_evidence_m
+        gain = np.mean(after < near) - np.mean(before < near)
+        return bool(gain >= cfg.second_evidence)
 
     def _move(self, delta: np.ndarray) -> None:
         """Move the robot and the submap by the world-frame correction ``delta``."""

@@ -116,8 +116,11 @@ class Dpcr2dConfig:
     what the short relations see; a gain below 1 averages that noise while the drift is
     still taken out over a few registrations. second_max_m / second_max_deg (0: off): a
     larger correction (about the robot) is not applied (the revisit search handles real
-    jumps). All three off by default: measured on the real logs, not kept (docs/dpcr2d.md,
-    "The short-range residual of the front end").
+    jumps). second_evidence (< 0: off) / second_evidence_m: such a larger correction is
+    taken all the same when it brings at least that share more of the submap's cells
+    within second_evidence_m of the regional map than no correction. All off by default:
+    measured on the real logs, not kept (docs/dpcr2d.md, "The short-range residual of the
+    front end", "Large second-registration corrections on evidence").
     """
 
     submap_scans: int = 20
@@ -171,6 +174,8 @@ class Dpcr2dConfig:
     second_gain: float = 1.0
     second_max_m: float = 0.0
     second_max_deg: float = 0.0
+    second_evidence: float = -1.0
+    second_evidence_m: float = 0.05
     refine: ScanWindowConfig = field(default_factory=ScanWindowConfig)
     refine_plicp: PlicpConfig = field(
         default_factory=lambda: PlicpConfig(max_distance=0.3, max_iterations=10, tolerance=1e-4)

@@ -40,3 +40,23 @@ def test_refinement_settings_are_checked():
         Dpcr2dConfig(second_gain=0.0)
     with pytest.raises(ConfigError, match="submap_lines"):
         Dpcr2dConfig(submap_lines="straight")
+
+
+def test_a_large_second_correction_is_taken_on_evidence_only():
+    """second_evidence: a correction beyond second_max_* is taken when it brings more of the
+    submap's cells onto the regional map (a real drift), not when it brings none closer."""
+    from frontends.dpcr2d import Dpcr2d
+    from slam.registration.local_lines2d import local_line_reference
+
+    # an L of walls: x = 0 (y 0..2 m) and y = 0 (x 0..2 m), as the regional map's lines
+    t = np.linspace(0.0, 2.0, 41)
+    ref_pts = np.vstack([np.column_stack([np.zeros(41), t]), np.column_stack([t, np.zeros(41)])])
+    ref = local_line_reference(ref_pts, Dpcr2dConfig().refine.lines)
+    submap = ref_pts + np.array([0.12, 0.0])  # drifted 12 cm along x
+    off = Dpcr2d(Dpcr2dConfig(second_max_m=0.1, second_max_deg=2.0))
+    on = Dpcr2d(Dpcr2dConfig(second_max_m=0.1, second_max_deg=2.0, second_evidence=0.05))
+    back = np.array([-0.12, 0.0, 0.0])
+    assert not off._second_evidence(submap, ref, back)  # off: never
+    assert on._second_evidence(submap, ref, back)  # half the cells (the x = 0 wall) 12 cm off
+    assert not on._second_evidence(ref_pts, ref, back)  # on the map already: it moves them off
+    assert Dpcr2dConfig().second_evidence < 0 and Dpcr2dConfig().second_evidence_m == 0.05
