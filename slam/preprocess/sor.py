@@ -41,7 +41,9 @@ class SorConfig:
     "paper" removes 58 % of the returns at 50-70 m, where the features that hold the
     street's along axis are); "paper" = one statistic (mu, sigma, d_avg, rho_avg of eqs.
     (5)-(9)) for the whole scan, as printed. A band of fewer than band_min_points points
-    joins its inner neighbour (the first band its outer one).
+    joins its inner neighbour (the first band its outer one): sigma is set by a band's few
+    isolated points, and from a few hundred far returns (a 32-beam scan beyond 50 m) it is
+    noise (nuScenes HDL-32E keyframes APE 40.5 cm with 500, 38.7 cm with 2000).
     """
 
     enabled: bool = True
@@ -53,7 +55,7 @@ class SorConfig:
     max_density_ratio: float = 1.0
     mode: str = "banded"
     band_edges: tuple[float, ...] = (15.0, 30.0, 50.0)
-    band_min_points: int = 500
+    band_min_points: int = 2000
 
     def __post_init__(self) -> None:
         if self.mode not in SOR_MODES:
