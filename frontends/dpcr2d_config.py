@@ -49,6 +49,12 @@ class Dpcr2dConfig:
     robot and the submap then move onto the region's map (re-anchored), so that the scans
     that follow draw its walls where they already are. A correction within
     ``revisit_min_m`` and ``revisit_min_deg`` is left to the second registration.
+    revisit_every (0: off): also search every that many frames, not only on region
+    changes: a front end that lost its heading where no old map was (FR079, scans 4545 -
+    4575) comes back along corridors where the search on each region change is
+    ambiguous, and is re-anchored by metres at the first unique one; searched often, it
+    is re-anchored where the maps first tell (docs/dpcr2d.md, "Drifting off the maps
+    between region changes"; off by default: the short relations' p90 is worse).
 
     graph_feedback: after each region-graph optimisation (the pipeline's
     ``on_graph_update``) the robot, its submap and every regional map move to where the
