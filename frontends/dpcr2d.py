@@ -26,7 +26,12 @@ import numpy as np
 
 from frontends.dpcr2d_config import Dpcr2dConfig
 from frontends.dpcr2d_maps import Region, fuse_visits
-from frontends.dpcr2d_steps import check_wheels, old_maps, revisit_match
+from frontends.dpcr2d_steps import (
+    check_wheels,
+    old_maps,
+    revisit_match,
+    search_poor_fit,
+)
 from slam.features.lines2d import extract_lines
 from slam.mapping.grid2d import (
     OccupancyGrid,
@@ -81,7 +86,7 @@ class Dpcr2d:
         self.pose_kf = np.zeros(3)
         self.counts = {"rejected": 0, "second_registrations": 0, "second_rejected": 0,
                        "revisit_searches": 0, "reanchored": 0, "wheel_kept": 0,
-                       "stalls": 0}  # fmt: skip
+                       "poor_fit_kept": 0, "stalls": 0}  # fmt: skip
         self.path = 0.0  # path length so far (m)
         self._odom: np.ndarray | None = None
         # stale_wheels: the last readings whose position / heading were new, and the motion
@@ -407,6 +412,11 @@ class Dpcr2d:
             kept = check_wheels(pts, self.submap_ref, predicted, res, prior, cfg, diag.counts)
             self.counts["wheel_kept"] += int(kept is not res)
             res = kept
+        if self._plausible(res, predicted):
+            searched = search_poor_fit(pts, self.submap_ref, self.submap_ref.points, predicted,
+                                       res, prior, cfg, diag.counts)  # fmt: skip
+            self.counts["poor_fit_kept"] += int(searched is not res)
+            res = searched
         diag.timings_ms["first_ms"] = (time.perf_counter() - t) * 1e3
         diag.counts.update(rmse=res.rmse, matches=res.matches, iterations=res.iterations)
         if not self._plausible(res, predicted):

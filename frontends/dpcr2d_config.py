@@ -81,9 +81,13 @@ class Dpcr2dConfig:
     from the prediction within ``wheel_check_distance`` m (the share of the scan's points
     within ``wheel_check_inlier_m`` of the submap's lines, ``plicp.inlier_share``); else
     the registration near the wheels is taken (MIT-CSAIL's 5 Hz turns: PLICP jumps to a
-    wall 20 deg off the wheels and the scans). start_frames: without wheel odometry the
-    first registrations of these frames search the motion (``start``, a correlative
-    window around the constant-velocity prediction) instead of assuming rest.
+    wall 20 deg off the wheels and the scans). poor_fit_rmse (m; 0: off): a first
+    registration with a larger RMSE is searched again, a correlative search over
+    ``poor_fit_search`` around the prediction then PLICP, and the search's pose taken when
+    it fits the submap better (``frontends.dpcr2d_steps.search_poor_fit``).
+    start_frames: without wheel odometry the first registrations of these frames search
+    the motion (``start``, a correlative window around the constant-velocity prediction)
+    instead of assuming rest.
     stale_wheels: the position or the heading of a wheel reading that repeats the last
     one exactly did not update (``slam.mapping.grid2d.stale_parts``); at the first new
     value, a step that departs from the robot's last motion by more than ``stall_m`` /
@@ -167,6 +171,11 @@ class Dpcr2dConfig:
     wheel_check_deg: float = 4.0
     wheel_check_distance: float = 0.15
     wheel_check_inlier_m: float = 0.05
+    poor_fit_rmse: float = 0.0
+    poor_fit_gain: float = 0.1
+    poor_fit_search: CorrelativeConfig = field(
+        default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
+    )
     start_frames: int = 3
     stale_wheels: bool = True
     stall_m: float = 0.1
