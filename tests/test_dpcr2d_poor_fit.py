@@ -56,7 +56,7 @@ def test_below_the_rmse_or_switched_off_nothing_is_searched():
     ref, b, truth = _pair()
     off = compose2d(truth, np.array([0.0, 0.15, np.radians(10.0)]))
     wrong = PlicpResult(off, 0.06, 200, 10, True, np.eye(3))
-    for cfg in (Dpcr2dConfig(), Dpcr2dConfig(poor_fit_rmse=0.07)):
+    for cfg in (Dpcr2dConfig(poor_fit_rmse=0.0), Dpcr2dConfig(poor_fit_rmse=0.07)):
         extras: dict = {}
         assert search_poor_fit(b, ref, ref.points, truth, wrong, {}, cfg, extras) is wrong
         assert not extras
