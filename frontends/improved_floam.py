@@ -22,6 +22,7 @@ from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.preprocess.sor import SorConfig
 from slam.registration import kernels
+from slam.registration.covariances import add_beam_angle_noise
 from slam.registration.gicp import (
     GicpConfig,
     GicpTarget,
@@ -322,6 +323,8 @@ class ImprovedFloam(ScanToMapFrontend):
             span_distance=rc.span_distance,
             threads=rc.threads,
         )
+        q = src if rows is None else src[rows]
+        covs = add_beam_angle_noise(q, covs, np.radians(rc.beam_angle_noise))
         return FeatureCloud(src, covs, rows, reg, rings[src_idx])
 
     def _motion_prior(self, T_pred: np.ndarray) -> PosePrior | None:

@@ -40,7 +40,7 @@ def test_query_recomputes_only_the_stale_rows_it_returns():
 
 def test_on_use_tracks_like_the_eager_refresh(urban_short):
     """Eager refresh and refresh on first use over the urban start (standing, then moving):
-    the same poses to 1 mm, stale rows while running, none in the map handed out."""
+    the same poses to 2 mm, stale rows while running, none in the map handed out."""
     import itertools
 
     from slam.io.source import open_source
@@ -53,7 +53,7 @@ def test_on_use_tracks_like_the_eager_refresh(urban_short):
     }
     poses = {mode: np.stack([fe.process(s).pose for s in scans]) for mode, fe in fes.items()}
     assert np.linalg.norm(poses["neighbours"][-1][:3, 3]) > 1.0  # it moved
-    np.testing.assert_allclose(poses["on_use"][:, :3, 3], poses["neighbours"][:, :3, 3], atol=1e-3)
+    np.testing.assert_allclose(poses["on_use"][:, :3, 3], poses["neighbours"][:, :3, 3], atol=2e-3)
     lazy = fes["on_use"]
     assert len(stale_rows(lazy._map.covs)) > 0  # rows waiting for their first use
     assert len(stale_rows(lazy.map.covs)) == 0  # the map handed out is complete

@@ -314,3 +314,16 @@ def estimate_covariances(
     cov = _regularise(cov, mode, single, plane_epsilon, line_ratio)
     cov[:, [0, 1, 2], [0, 1, 2]] += lambda_reg
     return cov
+
+
+def add_beam_angle_noise(points: np.ndarray, covs: np.ndarray, sigma_rad: float) -> np.ndarray:
+    """``covs`` (n, 3, 3, m^2) plus the beam's angular uncertainty at each point: (r sigma)^2
+    across the ray from the sensor origin, 0 along it (r = |point|, m; sigma, rad). A far
+    point's position is as uncertain as its beam is wide, so a far surface claims no more
+    than the beam resolves (what eq. (1) of paper 000 leaves out; docs/paper000.md)."""
+    if sigma_rad <= 0:
+        return covs
+    r2 = np.einsum("ij,ij->i", points, points)
+    u = points / np.sqrt(np.maximum(r2, 1e-12))[:, None]
+    across = np.eye(3) - u[:, :, None] * u[:, None, :]
+    return covs + (sigma_rad**2 * r2)[:, None, None] * across

@@ -69,6 +69,11 @@ class GicpConfig:
     # surface thinner than the sensor measures it (docs/paper000.md, GICP settings); 0 = eq.
     # (1) as printed
     point_noise: float = 0.01
+    # the beam's angular uncertainty (deg): a source point at range r gets (r sigma)^2 across
+    # its ray (``add_beam_angle_noise``), so a far surface claims no more than the beam
+    # resolves; 0.05 deg, about the spread of a Velodyne beam's footprint (docs/paper000.md,
+    # GICP settings); 0 = off
+    beam_angle_noise: float = 0.05
     # "raw": eq. (1) as written; "plane": eigenvalues (plane_epsilon, 1, 1) (Segal et al.);
     # "shape": plane, line or isotropic by what the support spans (``estimate_covariances``)
     covariance_mode: str = "raw"
@@ -107,6 +112,8 @@ class GicpConfig:
             raise ConfigError(f"k_covariance must be >= 3, got {self.k_covariance}")
         if self.point_noise < 0:
             raise ConfigError(f"point_noise must be >= 0 m, got {self.point_noise}")
+        if self.beam_angle_noise < 0:
+            raise ConfigError(f"beam_angle_noise must be >= 0 deg, got {self.beam_angle_noise}")
         if self.span_distance < 0:
             raise ConfigError(f"span_distance must be >= 0 m, got {self.span_distance}")
         if self.max_correspondence <= 0 or self.max_iterations < 1:
