@@ -205,7 +205,7 @@ class LegoLoam(ScanToMapFrontend):
         t = time.perf_counter()
         est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]))
         if len(self.edge_map) + len(self.plane_map) >= 10:
-            est.result = self._align(self._registered(f), T_pred, wide)
+            est.result = self._align(self._registered(f), T_pred, wide, self._iterations(scan))
             est.pose = est.result.T_target_source
             rc = self.cfg.registration
             if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
@@ -222,12 +222,21 @@ class LegoLoam(ScanToMapFrontend):
         kg, kp = thin_to_count([f.ground, f.planes], [cfg.ground_voxel, cfg.plane_voxel], cap)
         return replace(f, ground=f.ground[kg], planes=f.planes[kp])
 
-    def _align(self, f: LegoFeatures, T_pred: np.ndarray, wide: bool):
+    def _iterations(self, scan: Scan) -> int:
+        """The refinement's iteration cap: ``max_iterations`` per ``iteration_period`` of the
+        sweep period (the stamp gap before the period is known), 1-5 times."""
+        rc = self.cfg.registration
+        period = self.clock.period() or self.clock.since_last(scan.stamp)
+        if not period or rc.iteration_period <= 0:
+            return rc.max_iterations
+        return rc.max_iterations * int(np.clip(round(period / rc.iteration_period), 1, 5))
+
+    def _align(self, f: LegoFeatures, T_pred: np.ndarray, wide: bool, iterations: int):
         """Two-step LM and 6-DoF refinement against the maps from ``T_pred`` (a coarse pass
-        with a wider search first when ``wide``)."""
+        with a wider search first when ``wide``), at most ``iterations`` LM iterations."""
         cfg = self.cfg
         e_map, p_map = self._targets()
-        rc = cfg.registration
+        rc = replace(cfg.registration, max_iterations=iterations)
         plane = self._ground_plane_odom()
         g_res = self._ground_residual_points()
         T0 = T_pred

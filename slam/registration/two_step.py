@@ -54,7 +54,10 @@ class TwoStepConfig:
     huber_delta: float = 0.1  # robust kernel; 0 = off
     two_step: bool = True  # the two restricted steps before the 6-DoF refinement (ablation)
     step_iterations: int = 8  # LM iterations of each restricted step
-    max_iterations: int = 20  # LM iterations of the 6-DoF refinement
+    max_iterations: int = 20  # LM iterations of the 6-DoF refinement ...
+    # ... per this sweep period (s), at most 5x: a slower sensor's step starts farther from
+    # its solution (2 Hz keyframes 4-5 m apart need ~40-100); 0 = the cap as it is
+    iteration_period: float = 0.1
     # weight of each E_ground residual relative to a point-to-plane one (0 = LeGO-LOAM)
     ground_weight: float = 0.0
     ground_huber: float = 0.1  # the ground residual's robust kernel
@@ -75,6 +78,10 @@ class TwoStepConfig:
             raise ConfigError("two_step needs max_neighbor_distance > 0 and edge_ratio >= 1")
         if self.max_iterations < 1 or self.step_iterations < 0:
             raise ConfigError("two_step needs max_iterations >= 1 and step_iterations >= 0")
+        if self.iteration_period < 0:
+            raise ConfigError(
+                f"two_step iteration_period must be >= 0 s, got {self.iteration_period}"
+            )
         if self.ground_weight < 0:
             raise ConfigError(f"two_step ground_weight must be >= 0, got {self.ground_weight}")
         if not 0.0 <= self.degenerate_ratio < 1.0:
