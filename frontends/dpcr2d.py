@@ -413,8 +413,9 @@ class Dpcr2d:
             self.counts["wheel_kept"] += int(kept is not res)
             res = kept
         if self._plausible(res, predicted):
-            searched = search_poor_fit(pts, self.submap_ref, self.submap_ref.points, predicted,
-                                       res, prior, cfg, diag.counts)  # fmt: skip
+            searched = search_poor_fit(
+                pts, self.submap_ref, predicted, res, prior, cfg, diag.counts
+            )
             self.counts["poor_fit_kept"] += int(searched is not res)
             res = searched
         diag.timings_ms["first_ms"] = (time.perf_counter() - t) * 1e3

@@ -49,25 +49,23 @@ def check_wheels(
 def search_poor_fit(
     pts: np.ndarray,
     ref: LineReference,
-    reference: np.ndarray,
     predicted: np.ndarray,
     res: PlicpResult,
     prior: dict,
     cfg,
     counts: dict,
 ) -> PlicpResult:
-    """The first registration ``res`` of scan ``pts`` on the submap ``ref`` (its
-    obstacle cells ``reference``), unless its RMSE is above ``cfg.poor_fit_rmse`` (m) and
-    PLICP from the best pose of a correlative search around the ``predicted`` pose
-    (window ``cfg.poor_fit_search``, same wheel ``prior``) brings at least
-    ``cfg.poor_fit_gain`` more of the scan's points within ``wheel_check_inlier_m`` of the
-    submap's lines: PLICP converges to the nearest basin, which in a fast turn can be a
-    wall several degrees off; its residual rises there, and a search over the whole
-    window finds the basin most of the scan agrees with. ``counts`` gets the two fits and
-    ``poor_fit_kept`` = 1 when the searched pose was taken."""
+    """The first registration ``res`` of scan ``pts`` on the submap ``ref``, unless its
+    RMSE is above ``cfg.poor_fit_rmse`` (m) and PLICP from the best pose of a correlative
+    search around the ``predicted`` pose (window ``cfg.poor_fit_search``, same wheel
+    ``prior``) brings at least ``cfg.poor_fit_gain`` more of the scan's points within
+    ``wheel_check_inlier_m`` of the submap's lines: PLICP converges to the nearest basin,
+    which in a fast turn can be a wall several degrees off; its residual rises there, and a
+    search over the whole window finds the basin most of the scan agrees with. ``counts``
+    gets the two fits and ``poor_fit_kept`` = 1 when the searched pose was taken."""
     if cfg.poor_fit_rmse <= 0 or res.rmse <= cfg.poor_fit_rmse:
         return res
-    found = correlative_search(reference, pts, predicted, cfg.poor_fit_search)
+    found = correlative_search(ref.points, pts, predicted, cfg.poor_fit_search)
     other = plicp(pts, ref, found.pose, cfg.plicp, **prior)
     fit = [inlier_share(pts, ref, r.pose, cfg.wheel_check_inlier_m) for r in (res, other)]
     counts.update(poor_fit=1, poor_fit_fit=fit[0], poor_fit_search_fit=fit[1])

@@ -5,29 +5,16 @@ than PLICP started at the wheels."""
 from __future__ import annotations
 
 import numpy as np
+from office2d_pair import office_pair, pose_error
 
 from frontends.dpcr2d_config import Dpcr2dConfig
 from frontends.dpcr2d_steps import check_wheels
-from slam.eval.self_relations import scan_reference
-from slam.mapping.grid2d import compose2d, inverse2d
+from slam.mapping.grid2d import compose2d
 from slam.registration.plicp import PlicpResult, plicp
-from slam.sim.floorplan2d import simulate2d
-
-
-def _pair():
-    seq = simulate2d("office2d", frames=40, speed=1.0)
-    a, b = seq.points(10), seq.points(14)
-    truth = compose2d(inverse2d(seq.poses[10]), seq.poses[14])
-    return scan_reference(a, 0.05), b, truth
-
-
-def _err(pose, truth):
-    e = compose2d(inverse2d(truth), pose)
-    return float(np.hypot(e[0], e[1])), abs(float(np.degrees(e[2])))
 
 
 def test_a_jump_away_from_good_wheels_is_replaced():
-    ref, b, truth = _pair()
+    ref, b, truth = office_pair()
     cfg = Dpcr2dConfig()
     # a registration that landed 0.3 m / 15 deg off (a wrong wall, as on MIT-CSAIL)
     off = compose2d(truth, np.array([0.0, 0.3, np.radians(15.0)]))
@@ -35,12 +22,12 @@ def test_a_jump_away_from_good_wheels_is_replaced():
     extras: dict = {}
     kept = check_wheels(b, ref, truth, wrong, {}, cfg, extras)
     assert extras["wheel_kept"] == 1 and extras["wheel_check_near_fit"] > extras["wheel_check_fit"]
-    m, deg = _err(kept.pose, truth)
+    m, deg = pose_error(kept.pose, truth)
     assert m < 0.01 and deg < 0.1
 
 
 def test_a_good_registration_beats_wrong_wheels():
-    ref, b, truth = _pair()
+    ref, b, truth = office_pair()
     cfg = Dpcr2dConfig()
     good = plicp(b, ref, truth, cfg.plicp)
     wheels = compose2d(truth, np.array([0.25, 0.0, np.radians(6.0)]))  # the wheels slipped
@@ -51,7 +38,7 @@ def test_a_good_registration_beats_wrong_wheels():
 
 
 def test_near_the_wheels_nothing_is_checked():
-    ref, b, truth = _pair()
+    ref, b, truth = office_pair()
     cfg = Dpcr2dConfig()
     good = plicp(b, ref, truth, cfg.plicp)
     extras: dict = {}
