@@ -15,6 +15,10 @@ trajectories of ``icp2d``, ``dpcr2d``'s front end alone (``odometry.tum``), ``dp
   loop edge or drift around a loop makes, which short relations cannot see;
 - published relations where given (``--relations intel=FILE``, Freiburg format).
 
+``--beam-stride 2`` runs every log with every second beam (``slam.bench.degrade.
+thin_carmen``): FR079 and MIT-CSAIL then scan as the 1 deg, 180-beam lasers of Intel and
+the other older Freiburg logs (``--out`` should differ: the relations are made per scan set).
+
 Printed: per log and trajectory the relation count and translation mean / std / median /
 p90 / max / share above 0.2 m, rotation mean / p90, and the CPU time per scan of the run.
 
@@ -31,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.bench.degrade import thin_carmen
 from slam.config import load_config
 from slam.eval.metrics import read_trajectory
 from slam.eval.relations import read_relations, relation_errors, write_relations
@@ -122,6 +127,8 @@ def run_method(method: str, log: Path, out: Path, frames: int | None, sets: list
 def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> list[dict]:
     path = Path(args.data) / f"{log}.clf.bz2"
     base = Path(args.out)
+    if args.beam_stride > 1:  # the older 1 deg scanners, from a 0.5 deg log
+        path = thin_carmen(path, base / "logs" / path.name, args.beam_stride)
     rel, info = log_relations(path, args.frames, base)
     print(f"{log}: {info['kept']} self relations of {info['pairs']} pairs ({info['rejected']})")
     sets = {"published": published[log]} if log in published else {}
@@ -168,6 +175,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--relations", nargs="*", default=[], help="LOG=FILE published relations")
     ap.add_argument("--set", action="append", help="config override for every method")
+    ap.add_argument(
+        "--beam-stride", type=int, default=1, help="keep every N-th beam (2: 1 deg scanners)"
+    )
     args = ap.parse_args(argv)
     published = {k: Path(v) for k, v in (item.split("=", 1) for item in args.relations)}
     rows = []

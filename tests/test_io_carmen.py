@@ -95,3 +95,21 @@ def test_not_a_laser_log(tmp_path):
     path.write_text("ODOM 0 0 0 0 0 0 1.0 h 1.0\n")
     with pytest.raises(InputError, match="no FLASER"):
         open_source(path)
+
+
+def test_thinned_fr079_scans_as_a_one_degree_laser(tmp_path):
+    """Every second beam of FR079 (360 beams, 0.5 deg): the same points at 1 deg spacing."""
+    from slam.bench.degrade import thin_carmen
+
+    src = shared_path("laser2d", "fr079.clf.bz2")
+    thin = thin_carmen(src, tmp_path / "fr079.clf.bz2", 2)
+    full, half = _first(src, 5), _first(thin, 5)
+    for a, b in zip(full, half, strict=True):
+        assert b.stamp == a.stamp and np.array_equal(b.odom, a.odom)
+        angles_a = np.degrees(np.arctan2(a.xyz[:, 1], a.xyz[:, 0]))
+        angles_b = np.degrees(np.arctan2(b.xyz[:, 1], b.xyz[:, 0]))
+        assert len(b) == pytest.approx(len(a) / 2, abs=3)
+        # every thinned beam sits on a whole degree and is one of the full scan's points
+        assert np.abs(angles_b - np.round(angles_b)).max() < 1e-6
+        kept = np.isin(np.round(angles_a * 2).astype(int), np.round(angles_b * 2).astype(int))
+        assert np.allclose(a.xyz[kept], b.xyz)

@@ -4,9 +4,12 @@ or NaN clouds, a truncated file), with the association to the true stamps to jud
 
 from __future__ import annotations
 
+import bz2
 from pathlib import Path
 
 import numpy as np
+
+from slam.io.carmen import open_text
 
 GAP_AT = 150  # the first message of gap20's 2 s stall (a third into shorter bags)
 JUMP_AT = 200  # where clockback's clock steps back, glitch's stamp jumps (or half-way)
@@ -123,3 +126,21 @@ def true_stamps(stamp_map: np.ndarray, stamps: np.ndarray) -> np.ndarray:
         if best is None or err < best[0]:
             best = (err, stamp_map[order[k], 1])
     return best[1]
+
+
+def thin_carmen(src: Path, dst: Path, stride: int) -> Path:
+    """A copy of the CARMEN log ``src`` whose ``FLASER`` lines keep every ``stride``-th beam
+    (a 0.5 deg fan of 360 / 361 beams becomes the 1 deg, 180 / 181-beam scanner of the older
+    logs); every other line is copied as it is. Written bz2-compressed to ``dst``."""
+    if stride < 1:
+        raise ValueError("stride must be >= 1")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    with open_text(src) as f, bz2.open(dst, "wt") as g:
+        for line in f:
+            parts = line.split()
+            if len(parts) > 2 and parts[0] == "FLASER":
+                n = int(parts[1])
+                kept = parts[2 : 2 + n][::stride]
+                line = " ".join(["FLASER", str(len(kept)), *kept, *parts[2 + n :]]) + "\n"
+            g.write(line)
+    return dst

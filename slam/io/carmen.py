@@ -64,7 +64,8 @@ def is_carmen_path(path: Path) -> bool:
     return path.is_file() and any(name.endswith(s) for s in SUFFIXES)
 
 
-def _open_text(path: Path):
+def open_text(path: Path):
+    """A text log, read through bz2 / gzip by its suffix (undecodable bytes replaced)."""
     name = path.name.lower()
     if name.endswith(".bz2"):
         return bz2.open(path, "rt", errors="replace")
@@ -195,7 +196,7 @@ class CarmenSource:
         stamps: dict[str, list[float]] = {tag: [] for tag in PARSERS}
         largest = 0.0
         try:
-            with _open_text(self.path) as fh:
+            with open_text(self.path) as fh:
                 for line in fh:
                     tag, _, rest = line.partition(" ")
                     if tag in counts:
@@ -234,7 +235,7 @@ class CarmenSource:
         odom, poses = [], []
         index = 0
         try:
-            with _open_text(self.path) as fh:
+            with open_text(self.path) as fh:
                 for line_no, line in enumerate(fh, start=1):
                     tag, _, rest = line.partition(" ")
                     if tag != self._tag:
