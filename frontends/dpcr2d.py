@@ -117,6 +117,8 @@ class Dpcr2d:
         self.visit_scans: list[list[tuple[np.ndarray, np.ndarray]]] = []
         self._visit_scan_bytes = 0
         self._lost = False  # the last registered frame was rejected
+        # noise (m^2, rad^2) of the poorly fitting frames since the last keyframe
+        self._poor_var = np.zeros(2)
         self._anchor: RegionAnchor | None = None  # this frame's re-anchor, if any
 
     # ------------------------------------------------------------------ storage
@@ -240,6 +242,32 @@ class Dpcr2d:
         var_r = max(model_r2, self._odom_err2[1])
         return np.diag([1.0 / var_t, 1.0 / var_t, 1.0 / var_r])
 
+    def _count_poor_fit(self, status: TrackingStatus, diag: FrameDiagnostics) -> None:
+        """A frame whose pose the scan does not pin (still a poor fit after the search,
+        or the prediction kept) adds ``poor_fit_sigma_*`` to the keyframe's noise; a
+        re-anchor that moved the reported pose adds its own size (the jump is a
+        correction of the drift before it, not a motion the scans measured)."""
+        cfg = self.cfg
+        if self.frame == 0 or not cfg.first_registration or cfg.poor_fit_sigma_m <= 0:
+            return
+        kept = status in (TrackingStatus.LOST, TrackingStatus.PREDICTED)
+        if kept or diag.counts.get("rmse", 0.0) > cfg.poor_fit_rmse > 0:
+            self._poor_var += [cfg.poor_fit_sigma_m**2, np.radians(cfg.poor_fit_sigma_deg) ** 2]
+        if diag.counts.get("reanchored") and self._anchor is None:
+            jump = [diag.counts["reanchor_jump_m"], np.radians(diag.counts["reanchor_deg"])]
+            self._poor_var += np.square(jump)
+
+    def _information(self, relative: np.ndarray) -> np.ndarray:
+        """6x6 information of the motion since the last keyframe: the planar model times
+        ``graph_info_scale``, its plane's variances widened by the poorly fitting frames."""
+        info = self._info_scale * planar_information(relative)
+        if not self._poor_var.any():
+            return info
+        var = 1.0 / np.diag(info)
+        var[[3, 4]] += self._poor_var[0]
+        var[2] += self._poor_var[1]
+        return np.diag(1.0 / var)
+
     def _learn_odometry_noise(self, predicted: np.ndarray, registered: np.ndarray) -> None:
         """Running (about 20 frames) mean of the squared wheel-odometry error per frame,
         translation (per axis) and heading, against the accepted registration."""
@@ -321,8 +349,10 @@ class Dpcr2d:
             return False
         res_pose = pose
         self.counts["reanchored"] += 1
+        local = compose2d(compose2d(inverse2d(self.pose), res_pose), self.pose)  # robot frame
         counts.update(reanchored=1, reanchor_m=float(np.linalg.norm(res_pose[:2])),
-                      reanchor_deg=float(np.degrees(res_pose[2])))  # fmt: skip
+                      reanchor_deg=float(np.degrees(res_pose[2])),
+                      reanchor_jump_m=float(np.linalg.norm(local[:2])))  # fmt: skip
         self._move(res_pose)
         if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
             # a loop, not odometry: the reported pose does not jump; the keyframe of this
@@ -331,6 +361,10 @@ class Dpcr2d:
             placed = compose2d(maps[0].offset, self.kf_map[maps[0].owner])
             z = compose2d(inverse2d(placed), self.pose)
             self._anchor = RegionAnchor(maps[0].owner, (float(z[0]), float(z[1]), float(z[2])))
+        else:  # the reported pose jumps: the visit's recent scans shared the drift it removes
+            moved = compose2d(compose2d(inverse2d(self.feedback), res_pose), self.feedback)
+            self._recent = deque(((p, compose2d(moved, q)) for p, q in self._recent),
+                                 maxlen=self._recent.maxlen)  # fmt: skip
         return True
 
     def _visit_clouds(self) -> bool:
@@ -504,8 +538,9 @@ class Dpcr2d:
                 region = int(self.division.region_of(self.pose[:2][None])[0])
                 entered = region != left
         self.region = region
-        if cfg.visit_scans > 0:
-            is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0
+        if cfg.visit_scans > 0:  # a re-anchor's jump ends the visit: no cloud spans it
+            jumped = reanchored and self._anchor is None
+            is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0 or jumped
         else:
             is_kf = self.frame == 0 or entered or self._anchor is not None
         if is_kf:
@@ -570,9 +605,12 @@ class Dpcr2d:
             tag = RegionTag(region, -1 if left is None else left)
         if self._anchor is not None:
             tag = replace(tag or RegionTag(), anchor=self._anchor)
+        self._count_poor_fit(status, diag)
+        info = self._information(relative)
         if is_kf:
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
+            self._poor_var = np.zeros(2)
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1
@@ -583,7 +621,7 @@ class Dpcr2d:
             pose=T,
             is_keyframe=is_kf,
             relative=relative,
-            info=self._info_scale * planar_information(relative),
+            info=info,
             cloud=cloud,
             status=status,
             diagnostics=diag,

@@ -70,11 +70,13 @@ class Dpcr2dConfig:
     (this keyframe on the nearest old map's keyframe), not a jump of the odometry.
 
     visit_scans (0: off): the visit graph (``slam.visit_graph``): a keyframe at
-    frame 0 and at the last frame of every ``visit_scans`` (not at region changes), its
-    cloud the hit cells of the scans since the keyframe before and the ``visit_pad``
-    before those, drawn at this front end's own poses (measurement only, never a map the
-    graph moved), for the region-edges plugin's visit loop search; ``visit_grid`` fuses
-    these clouds at the optimised keyframe poses (``map.pgm``). Needs graph_feedback off.
+    frame 0 and at the last frame of every ``visit_scans`` (not at region changes) and
+    at a re-anchor (its jump ends the visit; the visit's earlier scans, which shared the
+    drift it removes, are moved with it), its cloud the hit cells of the scans since the
+    keyframe before and the ``visit_pad`` before those, drawn at this front end's own
+    poses (measurement only, never a map the graph moved), for the region-edges plugin's
+    visit loop search; ``visit_grid`` fuses these clouds at the optimised keyframe poses
+    (``map.pgm``). Needs graph_feedback off.
 
     wheel_check_m / wheel_check_deg (0: off): a first registration that lands farther
     than this from the wheel-odometry prediction must fit the submap better than PLICP
@@ -113,6 +115,15 @@ class Dpcr2dConfig:
     chain lets the loop edges bend the trajectory between vertices, which the
     relations see as steps (Intel 1.09 -> 1.24 cm mean with 1, 1.08 cm with 64). Only with
     the first registration on (wheel odometry alone keeps the model).
+    poor_fit_sigma_m / poor_fit_sigma_deg (0: off): that accuracy holds only where the
+    scans fit; each frame whose registration still fits worse than ``poor_fit_rmse``
+    after the search, or that kept its prediction (rejected, too few points), adds this
+    much (1 sigma, independent per frame) to the keyframe's odometry noise, and a
+    re-anchor (``revisit_search``) that moved the reported pose its own size, so that the
+    loop edges can take out what such a stretch got wrong (FR079 read at 1 deg: 26
+    reversing and turning frames with 20 - 35 % of the points on the submap slipped
+    1.1 m / 2 deg, and every loop edge that saw it was switched off against a chain
+    claiming centimetres).
 
     refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
     after the first registration, PLICP of the scan on the raw points of the last
@@ -185,6 +196,8 @@ class Dpcr2dConfig:
     stall_m: float = 0.1
     stall_deg: float = 5.0
     graph_info_scale: float = 64.0
+    poor_fit_sigma_m: float = 0.1
+    poor_fit_sigma_deg: float = 2.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )
