@@ -118,12 +118,12 @@ class Dpcr2dConfig:
     poor_fit_sigma_m / poor_fit_sigma_deg (0: off): that accuracy holds only where the
     scans fit; each frame whose registration still fits worse than ``poor_fit_rmse``
     after the search, or that kept its prediction (rejected, too few points), adds this
-    much (1 sigma, independent per frame) to the keyframe's odometry noise, and a
-    re-anchor (``revisit_search``) that moved the reported pose its own size, so that the
-    loop edges can take out what such a stretch got wrong (FR079 read at 1 deg: 26
-    reversing and turning frames with 20 - 35 % of the points on the submap slipped
-    1.1 m / 2 deg, and every loop edge that saw it was switched off against a chain
-    claiming centimetres).
+    much (1 sigma, independent per frame: about such a fit's RMSE) to the keyframe's
+    odometry noise, and a re-anchor (``revisit_search``) that moved the reported pose its
+    own size, so that the loop edges can take out what such a stretch got wrong (FR079
+    read at 1 deg: 26 reversing and turning frames with 20 - 35 % of the points on the
+    submap slipped 1.1 m / 2 deg, and every loop edge that saw it was switched off
+    against a chain claiming centimetres; docs/dpcr2d.md, "Where the scans do not fit").
 
     refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
     after the first registration, PLICP of the scan on the raw points of the last
@@ -196,8 +196,8 @@ class Dpcr2dConfig:
     stall_m: float = 0.1
     stall_deg: float = 5.0
     graph_info_scale: float = 64.0
-    poor_fit_sigma_m: float = 0.1
-    poor_fit_sigma_deg: float = 2.0
+    poor_fit_sigma_m: float = 0.05
+    poor_fit_sigma_deg: float = 1.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )
