@@ -124,6 +124,8 @@ class Dpcr2dConfig:
     read at 1 deg: 26 reversing and turning frames with 20 - 35 % of the points on the
     submap slipped 1.1 m / 2 deg, and every loop edge that saw it was switched off
     against a chain claiming centimetres; docs/dpcr2d.md, "Where the scans do not fit").
+    On in ``dpcr2d`` (5 cm, 1 deg: the visit graph's edges claim their real noise); off
+    for the region graph, whose edges claim PLICP's millimetres and bend a looser chain.
 
     refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
     after the first registration, PLICP of the scan on the raw points of the last
@@ -196,7 +198,7 @@ class Dpcr2dConfig:
     stall_m: float = 0.1
     stall_deg: float = 5.0
     graph_info_scale: float = 64.0
-    poor_fit_sigma_m: float = 0.05
+    poor_fit_sigma_m: float = 0.0
     poor_fit_sigma_deg: float = 1.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)

@@ -45,7 +45,7 @@ def test_frames_that_do_not_fit_widen_their_keyframe(lap):
     keyframe that holds them claims at least the 5 frames' noise (sqrt 5 x 5 cm, 1 deg); the
     keyframes before, and those after the clutter has left the submap (20 scans), the
     scaled model exactly."""
-    fe = Dpcr2d(Dpcr2dConfig(visit_scans=10))
+    fe = Dpcr2d(Dpcr2dConfig(visit_scans=10, poor_fit_sigma_m=0.05))
     rng = np.random.default_rng(0)
     kfs = []
     for k in range(110):
@@ -69,7 +69,7 @@ def test_a_re_anchor_widens_its_keyframe_by_its_jump(lap):
     """The robot and its submap moved 0.3 m / 12 deg at scan 80 (a drift); the re-anchor
     that puts it back onto the old map is a jump of the reported pose, not a motion: it
     ends the visit, and its keyframe claims at least the jump."""
-    fe = Dpcr2d(Dpcr2dConfig(visit_scans=10, poor_fit_rmse=0.0))
+    fe = Dpcr2d(Dpcr2dConfig(visit_scans=10, poor_fit_rmse=0.0, poor_fit_sigma_m=0.05))
     jumps, widened = [], []
     for k in range(len(lap.stamps)):
         if k == 80:
