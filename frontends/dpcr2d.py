@@ -264,8 +264,7 @@ class Dpcr2d:
         if not self._poor_var.any():
             return info
         var = 1.0 / np.diag(info)
-        var[[3, 4]] += self._poor_var[0]
-        var[2] += self._poor_var[1]
+        var[_PLANE] += self._poor_var[[0, 0, 1]]  # x, y, theta
         return np.diag(1.0 / var)
 
     def _learn_odometry_noise(self, predicted: np.ndarray, registered: np.ndarray) -> None:
