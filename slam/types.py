@@ -142,7 +142,8 @@ class OdometryDiagnostics(FrameDiagnostics):
     running normal restarted), map_skipped (trusted but not inserted: the sensor had not
     moved). lost: why the frame is on the prediction (rejected, failed, or skipped while
     tracking). gap_hypotheses: starts tried after a long gap (0: none); start_hypotheses:
-    starts tried while no velocity was known (0: none). ambiguity / ambiguity_axis: the
+    starts tried while no velocity was known (0: none); turn_hypotheses: starts tried while
+    tracking was lost (0: none). ambiguity / ambiguity_axis: the
     keyframe slide test's ratio and tested (x, y) axis (sensor frame) when it ran, and
     ambiguity_ms its wall time.
     """
@@ -160,6 +161,7 @@ class OdometryDiagnostics(FrameDiagnostics):
     min_info_eigenvalue: float | None = None
     gap_hypotheses: int = 0
     start_hypotheses: int = 0
+    turn_hypotheses: int = 0
     ambiguity: float | None = None
     ambiguity_axis: tuple[float, float] | None = None
     ambiguity_ms: float | None = None
@@ -180,6 +182,8 @@ class OdometryDiagnostics(FrameDiagnostics):
             out["gap_hypotheses"] = self.gap_hypotheses
         if self.start_hypotheses:
             out["start_hypotheses"] = self.start_hypotheses
+        if self.turn_hypotheses:
+            out["turn_hypotheses"] = self.turn_hypotheses
         out.update(self.counts)
         if self.registration is not None:
             r = self.registration

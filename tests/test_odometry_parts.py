@@ -257,3 +257,62 @@ def test_a_dropped_sweep_must_be_the_scans_answer_not_its_starts():
     assert gate.shown_by_scan(result(inliers=1800), pose(3.3), result(inliers=1650), first)
     # a turn counts like a shift: 5 deg apart is no agreement
     assert not gate.shown_by_scan(result(), pose(1.5, yaw_deg=5.0), result(), first)
+
+
+def placed(x=0.0, y=0.0, yaw_deg=0.0) -> np.ndarray:
+    """The pose at (x, y) turned ``yaw_deg`` about z (translation not coupled to the turn)."""
+    T = pose(yaw_deg=yaw_deg)
+    T[:2, 3] = x, y
+    return T
+
+
+def test_turn_hypotheses_turn_the_prediction_about_the_sensor_z_axis():
+    m = MotionModel(CommonConfig(lost_turn_hypotheses_deg=(15.0, 30.0)), SweepClock())
+    T_pred = placed(2.0, 1.0, yaw_deg=10.0)
+    starts = m.turn_hypotheses(T_pred)
+    assert len(starts) == 5 and starts[0] is T_pred
+    yaws = sorted(np.degrees(np.arctan2(T[1, 0], T[0, 0])) for T in starts)
+    assert np.allclose(yaws, [-20.0, -5.0, 10.0, 25.0, 40.0])
+    assert all(np.allclose(T[:3, 3], [2.0, 1.0, 0.0]) for T in starts)  # turned in place
+    off = MotionModel(CommonConfig(lost_turn_hypotheses_deg=()), SweepClock())
+    assert len(off.turn_hypotheses(T_pred)) == 1
+
+
+def test_a_turn_replaces_the_prediction_when_turned_apart_and_explaining_more():
+    from slam.odometry.estimate import Estimate
+    from slam.odometry.search import _near, start_beats
+
+    c = CommonConfig()
+    base = Estimate(placed(0.5, yaw_deg=5.0), result=result(inliers=1000))
+    turned = Estimate(placed(0.5, yaw_deg=35.0), result=result(inliers=1200))
+    assert not start_beats(turned, base, c)  # only 0 m apart: a speed hypothesis's test
+    assert start_beats(turned, base, c, turns=True)
+    weaker = Estimate(placed(0.5, yaw_deg=35.0), result=result(inliers=1010))
+    assert not start_beats(weaker, base, c, turns=True)  # 1 % more: not enough
+    again = Estimate(placed(0.5, yaw_deg=6.0), result=result(inliers=1300))
+    assert not start_beats(again, base, c, turns=True)  # 1 deg: the same minimum
+    assert _near(again, base, c) and not _near(turned, base, c)
+
+
+def _snap_search(free_x: bool):
+    """A StartSearch whose registration snaps every start to the pose (1, 0, yaw 30 deg),
+    except, with ``free_x``, along x, which stays where the start was (a plain corridor)."""
+    from slam.odometry.estimate import Estimate
+    from slam.odometry.search import StartSearch
+
+    def register(scan, T0, timings, wide):
+        x = T0[0, 3] if free_x else 1.0
+        return Estimate(placed(x, 0.0, 30.0), result=result(inliers=1500))
+
+    return StartSearch(CommonConfig(), register, lambda: None, lambda state: None)
+
+
+def test_lost_tracking_trusts_a_pose_only_where_starts_apart_converge_to_it():
+    m = MotionModel(CommonConfig(), SweepClock())
+    T_pred = placed(0.6, 0.0, 0.0)
+    starts, shifts = m.turn_hypotheses(T_pred), m.shift_hypotheses()
+    assert len(starts) == 7 and len(shifts) == 4
+    est, shown = _snap_search(free_x=False).after_turns(None, starts, shifts, {})
+    assert np.allclose(est.pose, placed(1.0, 0.0, 30.0)) and shown
+    est, shown = _snap_search(free_x=True).after_turns(None, starts, shifts, {})
+    assert not shown  # the starts moved along x stay there: x is the start's, not the scan's

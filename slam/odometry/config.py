@@ -58,6 +58,17 @@ class CommonConfig:
     start_min_shift: float = 0.1
     start_min_gain: float = 0.02
     start_rmse_weight: float = 0.5
+    # while tracking is lost, the registration also starts from the prediction turned by
+    # +-each of these angles (deg) about the sensor's z axis, and one replaces the
+    # prediction's as a speed hypothesis does (converged start_min_turn_deg away or
+    # start_min_shift m, explains better): a hand-held sensor that turned 30 deg over a
+    # dropped sweep lies outside GICP's basin from the prediction (() = off) ...
+    lost_turn_hypotheses_deg: tuple[float, ...] = (15.0, 30.0, 45.0)
+    start_min_turn_deg: float = 2.0
+    # ... and where another of those starts, and along each of x and y a start moved by
+    # +-this much (m) from the kept pose, converged to it, the scan shows it: it is not
+    # judged against the lost prediction (its quality and rates still are; () = always)
+    lost_shift_hypotheses_m: tuple[float, ...] = (0.5,)
     # a trusted scan enters the map and the gate's normal only after this much motion since
     # the last one that did: a standing sensor's scans would pull departing ones back to rest
     map_min_translation: float = 0.01

@@ -67,15 +67,17 @@ class TrackingGate:
         T_pred: np.ndarray,
         stamp: float,
         missed: int = 0,
+        predicted: bool = True,
     ) -> str | None:
         """Why the registration ``res`` ending at ``pose`` is not believable (None: trust
-        it). The prediction is a measurement only once two trusted poses gave it a velocity.
-        ``missed``: sweeps hypothesised dropped before this scan (its time is that much
-        longer; ``T_pred`` the prediction over it)."""
+        it). The prediction is a measurement only once two trusted poses gave it a velocity
+        (and ``predicted``). ``missed``: sweeps hypothesised dropped before this scan (its
+        time is that much longer; ``T_pred`` the prediction over it)."""
         since = self._clock.duration(self.trusted_stamp, stamp)
         if missed and since is not None:
             since += missed * (self._clock.period() or since)
-        off_prediction = np.linalg.inv(T_pred) @ pose if self.velocity_known else np.eye(4)
+        known = self.velocity_known and predicted
+        off_prediction = np.linalg.inv(T_pred) @ pose if known else np.eye(4)
         return implausibility(
             res,
             min_eigenvalue,
@@ -158,7 +160,8 @@ class TrackingGate:
         self.T_trusted = pose.copy()
         self.trusted_stamp = float(stamp)
         self.n_trusted += 1
-        self.n_chained = 1 if missed else self.n_chained + 1
+        # the velocity over dropped sweeps or a lost stretch is a guess, not a measurement
+        self.n_chained = 1 if missed or out.recovered else self.n_chained + 1
         return out
 
     def miss(self) -> bool:

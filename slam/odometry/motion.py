@@ -116,6 +116,29 @@ class MotionModel:
             starts.append(self.T_last @ T)
         return starts
 
+    def turn_hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
+        """``T_pred`` first, then turned by +-each ``lost_turn_hypotheses_deg`` about the
+        sensor's z axis (a hand-held or skidding sensor's unpredicted turn)."""
+        starts = [T_pred]
+        for deg in self._c.lost_turn_hypotheses_deg:
+            for sign in (1.0, -1.0):
+                a = np.radians(sign * deg)
+                T = np.eye(4)
+                T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+                starts.append(T_pred @ T)
+        return starts
+
+    def shift_hypotheses(self) -> list[np.ndarray]:
+        """Sensor-frame offsets (4x4) by +-each ``lost_shift_hypotheses_m`` along x and y."""
+        out = []
+        for d in self._c.lost_shift_hypotheses_m:
+            for axis in (0, 1):
+                for sign in (1.0, -1.0):
+                    D = np.eye(4)
+                    D[axis, 3] = sign * d
+                    out.append(D)
+        return out
+
     def deskew(self, scan: Scan) -> Scan:
         """The scan motion-compensated with the smoothed twist over ``motion_dt`` (as it is
         before any motion is known, without per-point time or ``deskew`` off)."""

@@ -60,6 +60,7 @@ class _Frame:
     ground_plane: np.ndarray | None = None
     work: Scan | None = None  # the cropped, deskewed scan that was registered
     missed: int = 0  # sweeps believed dropped before it (unseen by the stamps)
+    shown: bool = False  # lost: registrations from starts turned apart agree on the pose
     scan_state: object = None  # the front end's per-scan state before registering it
 
     @property
@@ -183,6 +184,12 @@ class ScanToMapFrontend:
                     work, T_pred, self.motion.start_hypotheses(since), f.timings, self.gate.lost
                 )
                 f.diag.start_hypotheses = n
+            elif self.gate.lost and self._c.lost_turn_hypotheses_deg:
+                # lost: the prediction may be off by a turn outside the registration's basin
+                starts = self.motion.turn_hypotheses(T_pred)
+                shifts = self.motion.shift_hypotheses()
+                f.est, f.shown = self.search.after_turns(work, starts, shifts, f.timings)
+                f.diag.turn_hypotheses = len(starts)
             else:
                 self.tracked_horizon = self._tracked_horizon(f.stamp)
                 step = None
@@ -265,9 +272,11 @@ class ScanToMapFrontend:
             est.information = information_from_hessian(
                 est.H, est.residual_variance, self._c.information
             )
+            # a pose the scan showed from turned starts is not judged by the lost prediction
             f.diag.lost = self.gate.judge(
-                est.result, est.information.min_eigenvalue, est.pose, T_pred, f.stamp
-            )
+                est.result, est.information.min_eigenvalue, est.pose, T_pred, f.stamp,
+                predicted=not f.shown,
+            )  # fmt: skip
             if f.diag.lost is not None and self.gate.may_have_missed(
                 est.result, est.information.min_eigenvalue
             ):

@@ -16,18 +16,24 @@ Register = Callable[[Scan, np.ndarray, dict, bool], Estimate]
 Tried = list[tuple[Estimate, np.ndarray]]
 
 
-def start_beats(est: Estimate, base: Estimate | None, c: CommonConfig) -> bool:
+def start_beats(est: Estimate, base: Estimate | None, c: CommonConfig, turns: bool = False) -> bool:
     """Whether a registration from a speed hypothesis explains the scan better than the one
     from the prediction ``base``: ``base`` failed or did not converge and ``est`` did, or
-    ``est`` converged more than ``start_min_shift`` m away and ``explains_better`` by
-    ``start_min_gain`` (else the prediction's stands: the same minimum found twice)."""
+    ``est`` converged more than ``start_min_shift`` m away (``turns``: or
+    ``start_min_turn_deg`` turned) and ``explains_better`` by ``start_min_gain`` (else the
+    prediction's stands: the same minimum found twice)."""
     res = est.result
     if res is None or not res.converged:
         return False
-    if base is None or not base.result.converged:
+    if base is None or base.result is None or not base.result.converged:
         return True
     shift = float(np.linalg.norm(est.pose[:3, 3] - base.pose[:3, 3]))
-    return shift > c.start_min_shift and explains_better(est, base, c) > c.start_min_gain
+    apart = shift > c.start_min_shift
+    if turns:
+        R = base.pose[:3, :3].T @ est.pose[:3, :3]
+        turn = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        apart = apart or turn > c.start_min_turn_deg
+    return apart and explains_better(est, base, c) > c.start_min_gain
 
 
 def explains_better(est: Estimate, base: Estimate, c: CommonConfig) -> float:
@@ -118,3 +124,57 @@ class StartSearch:
         if base is None:
             raise RegistrationError("no registration converged from any start hypothesis")
         return base, T_pred, len(starts)
+
+    def after_turns(
+        self, work: Scan, starts: list[np.ndarray], shifts: list[np.ndarray], timings: dict
+    ) -> tuple[Estimate, bool]:
+        """Tracking lost: the registrations (wide) from the prediction (the first of
+        ``starts``) and from its turns; a turn's is kept where it ``start_beats`` the
+        prediction's (``turns``). Returns it, and whether the scan shows its pose: another
+        of ``starts`` converged to it (within ``start_min_shift`` m and
+        ``start_min_turn_deg``), and so did, along each of x and y, a start from it moved by
+        one of ``shifts`` (sensor-frame offsets, 4x4) along that axis: a pose the sensor is
+        pulled to from starts tens of degrees and half a metre apart is the scan's, not its
+        start's (along a plain corridor the shifted starts stay where they started)."""
+        state = self._save()
+        try:
+            base = self._register(work, starts[0], timings, True)
+        except RegistrationError:
+            base = None
+        if base is not None and base.result is None:  # nothing to register against
+            return base, False
+        after = self._save()
+        self._restore(state)
+        tried = [e for e, _ in self.tried(work, starts[1:], timings)]
+        better = [e for e in tried if start_beats(e, base, self._c, turns=True)]
+        if better:
+            best = most_explained([(e, starts[0]) for e in better])[0]
+        elif base is None:
+            raise RegistrationError("no registration converged from any turn hypothesis")
+        else:
+            best = base
+        others = [e for e in [base, *tried] if e is not None and e is not best]
+        shown = any(_near(e, best, self._c) for e in others if e.result is not None)
+        if shown and shifts:
+            self._restore(state)
+            back = self.tried(work, [best.pose @ D for D in shifts], timings)
+            axes = {
+                int(np.argmax(np.abs((np.linalg.inv(best.pose) @ T0)[:3, 3])))
+                for e, T0 in back
+                if e.result is not None and _near(e, best, self._c)
+            }
+            shown = {0, 1} <= axes
+        if best is base:
+            self._restore(after)
+        else:  # the kept registration's per-scan state
+            self._restore(state)
+            best = self._register(work, best.pose, timings, False)
+        return best, shown
+
+
+def _near(a: Estimate, b: Estimate, c: CommonConfig) -> bool:
+    """Whether two registrations ended at the same pose (``start_min_shift`` m and
+    ``start_min_turn_deg``)."""
+    D = np.linalg.inv(a.pose) @ b.pose
+    turn = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return bool(np.linalg.norm(D[:3, 3]) <= c.start_min_shift and turn <= c.start_min_turn_deg)
