@@ -143,9 +143,8 @@ class OdometryDiagnostics(FrameDiagnostics):
     moved). lost: why the frame is on the prediction (rejected, failed, or skipped while
     tracking). gap_hypotheses: starts tried after a long gap (0: none); start_hypotheses:
     starts tried while no velocity was known (0: none); turn_hypotheses: starts tried while
-    tracking was lost (0: none). ambiguity / ambiguity_axis: the
-    keyframe slide test's ratio and tested (x, y) axis (sensor frame) when it ran, and
-    ambiguity_ms its wall time.
+    tracking was lost (0: none). ambiguity / ambiguity_axis: the keyframe slide test's ratio
+    and tested (x, y) axis (sensor frame) when it ran, and ambiguity_ms its wall time.
     """
 
     n_points: int = 0

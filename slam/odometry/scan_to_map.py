@@ -60,7 +60,7 @@ class _Frame:
     ground_plane: np.ndarray | None = None
     work: Scan | None = None  # the cropped, deskewed scan that was registered
     missed: int = 0  # sweeps believed dropped before it (unseen by the stamps)
-    shown: bool = False  # lost: registrations from starts turned apart agree on the pose
+    shown: bool = False  # lost: starts turned and moved apart converged to its pose
     scan_state: object = None  # the front end's per-scan state before registering it
 
     @property
@@ -272,7 +272,7 @@ class ScanToMapFrontend:
             est.information = information_from_hessian(
                 est.H, est.residual_variance, self._c.information
             )
-            # a pose the scan showed from turned starts is not judged by the lost prediction
+            # a pose the scan showed from starts apart is not judged by the lost prediction
             f.diag.lost = self.gate.judge(
                 est.result, est.information.min_eigenvalue, est.pose, T_pred, f.stamp,
                 predicted=not f.shown,

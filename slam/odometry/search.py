@@ -10,6 +10,7 @@ import numpy as np
 from slam.odometry.config import CommonConfig
 from slam.odometry.estimate import Estimate
 from slam.registration.gicp import RegistrationError
+from slam.registration.plausibility import motion_magnitude
 from slam.types import Scan
 
 Register = Callable[[Scan, np.ndarray, dict, bool], Estimate]
@@ -30,8 +31,7 @@ def start_beats(est: Estimate, base: Estimate | None, c: CommonConfig, turns: bo
     shift = float(np.linalg.norm(est.pose[:3, 3] - base.pose[:3, 3]))
     apart = shift > c.start_min_shift
     if turns:
-        R = base.pose[:3, :3].T @ est.pose[:3, :3]
-        turn = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        turn = motion_magnitude(np.linalg.inv(base.pose) @ est.pose)[1]
         apart = apart or turn > c.start_min_turn_deg
     return apart and explains_better(est, base, c) > c.start_min_gain
 
@@ -175,6 +175,5 @@ class StartSearch:
 def _near(a: Estimate, b: Estimate, c: CommonConfig) -> bool:
     """Whether two registrations ended at the same pose (``start_min_shift`` m and
     ``start_min_turn_deg``)."""
-    D = np.linalg.inv(a.pose) @ b.pose
-    turn = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-    return bool(np.linalg.norm(D[:3, 3]) <= c.start_min_shift and turn <= c.start_min_turn_deg)
+    shift, turn = motion_magnitude(np.linalg.inv(a.pose) @ b.pose)
+    return shift <= c.start_min_shift and turn <= c.start_min_turn_deg
