@@ -119,14 +119,8 @@ class MotionModel:
     def turn_hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """``T_pred`` first, then turned by +-each ``lost_turn_hypotheses_deg`` about the
         sensor's z axis (a hand-held or skidding sensor's unpredicted turn)."""
-        starts = [T_pred]
-        for deg in self._c.lost_turn_hypotheses_deg:
-            for sign in (1.0, -1.0):
-                a = np.radians(sign * deg)
-                T = np.eye(4)
-                T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-                starts.append(T_pred @ T)
-        return starts
+        turns = [sign * np.radians(d) for d in self._c.lost_turn_hypotheses_deg for sign in (1, -1)]
+        return [T_pred, *(T_pred @ se3_exp(np.array([0, 0, a, 0, 0, 0])) for a in turns)]
 
     def shift_hypotheses(self) -> list[np.ndarray]:
         """Sensor-frame offsets (4x4) by +-each ``lost_shift_hypotheses_m`` along x and y."""

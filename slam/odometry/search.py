@@ -95,6 +95,32 @@ class StartSearch:
         scored = [(e, T0) for e, T0 in tried if e.result is not None]
         return most_explained(scored) if scored else tried[0]
 
+    def _race(
+        self,
+        work: Scan,
+        T_base: np.ndarray,
+        others: list[np.ndarray],
+        timings: dict,
+        wide: bool,
+        turns: bool = False,
+    ) -> tuple[Estimate | None, Tried, Tried, object, object]:
+        """The registration from ``T_base`` and (wide) from each of ``others``, each from the
+        same per-scan state: the base's (None: it failed; without a result: nothing to
+        register against, no other tried), the others that did not fail, those of them
+        that ``start_beats`` the base's, the state before and the state after the base."""
+        state = self._save()
+        try:
+            base = self._register(work, T_base, timings, wide)
+        except RegistrationError:
+            base = None
+        after = self._save()
+        if base is not None and base.result is None:
+            return base, [], [], state, after
+        self._restore(state)
+        tried = self.tried(work, others, timings)
+        better = [(e, T0) for e, T0 in tried if start_beats(e, base, self._c, turns)]
+        return base, tried, better, state, after
+
     def first_motion(
         self,
         work: Scan,
@@ -107,18 +133,10 @@ class StartSearch:
         first of ``starts``) as usual and from the speed hypotheses; another start's is
         kept only where it ``start_beats`` the prediction's. Returns it, its start and the
         number of starts."""
-        state = self._save()
-        try:
-            base = self._register(work, T_pred, timings, wide)
-        except RegistrationError:
-            base = None
+        base, _, better, _, after = self._race(work, T_pred, starts[1:], timings, wide)
         if base is not None and base.result is None:  # nothing to register against
             return base, T_pred, 0
-        after = self._save()
-        self._restore(state)
-        tried = self.tried(work, starts[1:], timings)
         self._restore(after)
-        better = [(e, T0) for e, T0 in tried if start_beats(e, base, self._c)]
         if better:
             return (*most_explained(better), len(starts))
         if base is None:
@@ -136,24 +154,18 @@ class StartSearch:
         one of ``shifts`` (sensor-frame offsets, 4x4) along that axis: a pose the sensor is
         pulled to from starts tens of degrees and half a metre apart is the scan's, not its
         start's (along a plain corridor the shifted starts stay where they started)."""
-        state = self._save()
-        try:
-            base = self._register(work, starts[0], timings, True)
-        except RegistrationError:
-            base = None
+        base, tried, better, state, after = self._race(
+            work, starts[0], starts[1:], timings, True, turns=True
+        )
         if base is not None and base.result is None:  # nothing to register against
             return base, False
-        after = self._save()
-        self._restore(state)
-        tried = [e for e, _ in self.tried(work, starts[1:], timings)]
-        better = [e for e in tried if start_beats(e, base, self._c, turns=True)]
         if better:
-            best = most_explained([(e, starts[0]) for e in better])[0]
+            best = most_explained(better)[0]
         elif base is None:
             raise RegistrationError("no registration converged from any turn hypothesis")
         else:
             best = base
-        others = [e for e in [base, *tried] if e is not None and e is not best]
+        others = [e for e in [base, *(e for e, _ in tried)] if e is not None and e is not best]
         shown = any(_near(e, best, self._c) for e in others if e.result is not None)
         if shown and shifts:
             self._restore(state)
