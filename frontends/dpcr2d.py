@@ -119,6 +119,7 @@ class Dpcr2d:
         self._lost = False  # the last registered frame was rejected
         # noise (m^2, rad^2) of the poorly fitting frames since the last keyframe
         self._poor_var = np.zeros(2)
+        self._wheel_gap: np.ndarray | None = None
         self._anchor: RegionAnchor | None = None  # this frame's re-anchor, if any
 
     # ------------------------------------------------------------------ storage
@@ -244,15 +245,20 @@ class Dpcr2d:
 
     def _count_poor_fit(self, status: TrackingStatus, diag: FrameDiagnostics) -> None:
         """A frame whose pose the scan does not pin (still a poor fit after the search,
-        or the prediction kept) adds ``poor_fit_sigma_*`` to the keyframe's noise; a
-        re-anchor that moved the reported pose adds its own size (the jump is a
+        or the prediction kept) adds ``poor_fit_sigma_*`` to the keyframe's noise, a
+        registered one at most its disagreement with the wheels (``poor_fit_wheel_bound``);
+        a re-anchor that moved the reported pose adds its own size (the jump is a
         correction of the drift before it, not a motion the scans measured)."""
         cfg = self.cfg
         if self.frame == 0 or not cfg.first_registration or cfg.poor_fit_sigma_m <= 0:
             return
         kept = status in (TrackingStatus.LOST, TrackingStatus.PREDICTED)
         if kept or diag.counts.get("rmse", 0.0) > cfg.poor_fit_rmse > 0:
-            self._poor_var += [cfg.poor_fit_sigma_m**2, np.radians(cfg.poor_fit_sigma_deg) ** 2]
+            var = np.array([cfg.poor_fit_sigma_m**2, np.radians(cfg.poor_fit_sigma_deg) ** 2])
+            gap = None if kept else self._wheel_gap
+            if cfg.poor_fit_wheel_bound and gap is not None:
+                var = np.minimum(var, [gap[0] ** 2 + gap[1] ** 2, gap[2] ** 2])
+            self._poor_var += var
         if diag.counts.get("reanchored") and self._anchor is None:
             jump = [diag.counts["reanchor_jump_m"], np.radians(diag.counts["reanchor_deg"])]
             self._poor_var += np.square(jump)
@@ -461,6 +467,7 @@ class Dpcr2d:
             t = time.perf_counter()
             res = self._refine(pts, res, prior, diag.counts)
             diag.timings_ms["refine_ms"] = (time.perf_counter() - t) * 1e3
+        self._wheel_gap = compose2d(inverse2d(predicted), res.pose) if from_wheels else None
         if from_wheels:
             self._learn_odometry_noise(predicted, res.pose)
         return res.pose, TrackingStatus.RECOVERED if self._lost else TrackingStatus.TRACKED

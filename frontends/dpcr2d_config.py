@@ -126,6 +126,11 @@ class Dpcr2dConfig:
     against a chain claiming centimetres; docs/dpcr2d.md, "Where the scans do not fit").
     On in ``dpcr2d`` (5 cm, 1 deg: the visit graph's edges claim their real noise); off
     for the region graph, whose edges claim PLICP's millimetres and bend a looser chain.
+    poor_fit_wheel_bound: a registered frame's share is at most how far its registration
+    and its wheel odometry disagree (translation, heading): where the two agree the frame
+    did not slip, and the loop edges should not put a correction there (Intel: the short
+    relations of the graph 1.25 -> 1.24 cm, its front end's); a kept prediction and a
+    re-anchor are not bounded.
 
     refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
     after the first registration, PLICP of the scan on the raw points of the last
@@ -200,6 +205,7 @@ class Dpcr2dConfig:
     graph_info_scale: float = 64.0
     poor_fit_sigma_m: float = 0.0
     poor_fit_sigma_deg: float = 1.0
+    poor_fit_wheel_bound: bool = True
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )
