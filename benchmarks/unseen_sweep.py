@@ -144,7 +144,8 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['case']} | {r['config']} | {r.get('frames')} "
             f"| {cell(r.get('rejected'))} / {cell(r.get('lost'))} | {ape} | {cell(pct, 2)} "
-            f"| {cell(r.get('drift_pct'), 2)} | {cell(r.get('step_err_max'))} @{cell(r.get('step_at'))} | {speed} "
+            f"| {cell(r.get('drift_pct'), 2)} "
+            f"| {cell(r.get('step_err_max'))} @{cell(r.get('step_at'))} | {speed} "
             f"| {r.get('ran_away') or 'no'} |"
         )
     return "\n".join(lines)
