@@ -273,6 +273,13 @@ class Dpcr2d:
         var[_PLANE] += self._poor_var[[0, 0, 1]]  # x, y, theta
         return np.diag(1.0 / var)
 
+    def _spread(self, step: np.ndarray, poor: np.ndarray) -> float:
+        """This frame's share of its keyframe's noise (m^2 + rad^2, ``Odometry.spread``): the
+        planar model of its own step, scaled as the keyframe's, plus what a poor fit or a
+        re-anchor added (``poor``: m^2, rad^2)."""
+        var = 1.0 / np.diag(self._info_scale * planar_information(pose2_to_matrix(step)))
+        return float(var[_PLANE[0]] + var[_PLANE[2]] + poor[0] + poor[1])
+
     def _learn_odometry_noise(self, predicted: np.ndarray, registered: np.ndarray) -> None:
         """Running (about 20 frames) mean of the squared wheel-odometry error per frame,
         translation (per axis) and heading, against the accepted registration."""
@@ -611,7 +618,11 @@ class Dpcr2d:
             tag = RegionTag(region, -1 if left is None else left)
         if self._anchor is not None:
             tag = replace(tag or RegionTag(), anchor=self._anchor)
+        poor_before = self._poor_var.copy()
         self._count_poor_fit(status, diag)
+        spread = self._spread(
+            compose2d(inverse2d(previous), self.pose), self._poor_var - poor_before
+        )
         info = self._information(relative)
         if is_kf:
             self.pose_kf = reported
@@ -632,4 +643,5 @@ class Dpcr2d:
             status=status,
             diagnostics=diag,
             region=tag,
+            spread=spread,
         )

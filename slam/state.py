@@ -12,6 +12,7 @@ from enum import Enum
 import numpy as np
 
 from slam.io.stream import StreamStats
+from slam.spread import spread_corrections
 from slam.timing import StageTimer
 from slam.types import Keyframe, Odometry
 
@@ -53,6 +54,7 @@ class RunState:
     odom_poses: list[np.ndarray] = field(default_factory=list)
     frame_kf: list[int] = field(default_factory=list)
     T_kf_frame: list[np.ndarray] = field(default_factory=list)
+    frame_spread: array = field(default_factory=lambda: array("d"))  # NaN: not given
     keyframes: list[Keyframe] = field(default_factory=list)
     factor_counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     diagnostic_sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
@@ -149,8 +151,19 @@ class RunState:
         return {k: self.diagnostic_sums[k] / n for k, n in self.diagnostic_counts.items() if n}
 
     def trajectory(self) -> np.ndarray:
-        """(N,4,4) optimised pose of every frame: keyframe estimate composed with T_kf_frame."""
+        """(N,4,4) optimised pose of every frame: keyframe estimate composed with T_kf_frame;
+        between keyframes whose frames all report a spread, the change of correction
+        spread over them (``slam.spread``)."""
         if not self.stamps:
             return np.zeros((0, 4, 4))
-        kf_poses = np.stack([self.estimates[k] for k in self.frame_kf])
-        return kf_poses @ np.stack(self.T_kf_frame)
+        n = len(self.stamps)
+        spread = np.asarray(self.frame_spread[:n], dtype=np.float64)
+        if not np.isfinite(spread).any():
+            kf_poses = np.stack([self.estimates[k] for k in self.frame_kf[:n]])
+            return kf_poses @ np.stack(self.T_kf_frame[:n])
+        frame_kf = np.asarray(self.frame_kf[:n])
+        first = {}
+        for i, k in enumerate(frame_kf.tolist()):
+            first.setdefault(k, i)
+        odom = np.stack(self.odom_poses[:n])
+        return spread_corrections(odom, frame_kf, first, self.estimates, spread)

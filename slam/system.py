@@ -142,6 +142,7 @@ class SlamSystem:
         st.odom_poses.append(pose)
         st.frame_kf.append(kf.id)
         st.T_kf_frame.append(np.linalg.solve(kf.pose_odom, pose))
+        st.frame_spread.append(np.nan if odom.spread is None else float(odom.spread))
 
     def _add_keyframe(self, scan: Scan, odom: Odometry) -> None:
         """A new keyframe: the factor plugins' factors and its initial guess (the previous

@@ -257,6 +257,10 @@ class Odometry:
     ends), what the system counts and averages. ground_plane: (4,) [nx, ny, nz, d] of the
     ground fitted in the sensor frame (n.x + d = 0, d = sensor height, m), or None.
     region: a 2D region front end's ``RegionTag``, or None.
+    spread: the frame's share of the noise of its keyframe stretch's relative pose (any
+    unit, only ratios count; ``slam.spread``), or None: with every frame of a stretch
+    giving one, the trajectory puts the graph's correction between two keyframes where the
+    noise is instead of at the next keyframe.
     extras: read by nothing in the framework; the scan-to-map front ends leave there a
     flat copy of their diagnostics and the keyframe information before the slide test
     (``_info_before_ambiguity``) for scripts written against earlier versions
@@ -274,6 +278,7 @@ class Odometry:
     diagnostics: FrameDiagnostics | None = None
     ground_plane: np.ndarray | None = None
     region: RegionTag | None = None
+    spread: float | None = None
 
     def flat(self) -> dict[str, Any]:
         """The frame's diagnostics and region tag as flat scalars (the numbers are what

@@ -518,7 +518,8 @@ def scan_poses(
     fe_poses: np.ndarray, of: np.ndarray, anchors: np.ndarray, estimates: np.ndarray
 ) -> np.ndarray:
     """Every scan at its vertex's optimised pose o its front-end pose relative to the
-    vertex (rigid between vertices, as the pipeline's trajectory)."""
+    vertex (rigid between vertices; the pipeline's trajectory also spreads each change over
+    the frames by their spreads, ``slam.spread``)."""
     out = np.zeros_like(fe_poses)
     for s, v in enumerate(of):
         rel = compose2d(inverse2d(fe_poses[anchors[v]]), fe_poses[s])
