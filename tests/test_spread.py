@@ -76,3 +76,27 @@ def test_a_stretch_with_a_missing_spread_stays_rigid():
     rigid = est[1] @ np.linalg.inv(odom[10]) @ odom[11:20]
     assert np.allclose(out[11:20], rigid, atol=1e-12)
     assert not np.allclose(out[1:10], odom[1:10])  # the other stretch is spread
+
+
+def test_the_run_state_spreads_where_its_front_end_gave_spreads():
+    """``RunState.trajectory`` (what trajectory.tum holds): rigid while no frame gave a
+    spread (as for the 3D front ends), spread once they all do."""
+    from slam.state import RunState
+
+    spread = np.ones(21)
+    odom, frame_kf, kf_frames, est, out = _setup(spread)
+    st = RunState()
+    for i in range(21):
+        k = int(frame_kf[i])
+        st.stamps.append(0.1 * i)
+        st.odom_poses.append(odom[i])
+        st.frame_kf.append(k)
+        st.T_kf_frame.append(np.linalg.solve(odom[kf_frames[k]], odom[i]))
+        st.frame_spread.append(np.nan)
+    st.estimates.update(est)
+    rigid = st.trajectory()
+    assert np.allclose(rigid[5], est[0] @ np.linalg.inv(odom[0]) @ odom[5], atol=1e-12)
+    for i in range(21):
+        st.frame_spread[i] = 1.0
+    assert np.allclose(st.trajectory(), out, atol=1e-12)
+    assert abs(st.trajectory()[5, 1, 3] - 0.15) < 1e-12
