@@ -243,25 +243,27 @@ class Dpcr2d:
         var_r = max(model_r2, self._odom_err2[1])
         return np.diag([1.0 / var_t, 1.0 / var_t, 1.0 / var_r])
 
-    def _count_poor_fit(self, status: TrackingStatus, diag: FrameDiagnostics) -> None:
-        """A frame whose pose the scan does not pin (still a poor fit after the search,
-        or the prediction kept) adds ``poor_fit_sigma_*`` to the keyframe's noise, a
-        registered one at most its disagreement with the wheels (``poor_fit_wheel_bound``);
-        a re-anchor that moved the reported pose adds its own size (the jump is a
-        correction of the drift before it, not a motion the scans measured)."""
+    def _poor_fit_var(self, status: TrackingStatus, diag: FrameDiagnostics) -> np.ndarray:
+        """The noise (m^2, rad^2) this frame adds to its keyframe's: where the scan does not
+        pin its pose (still a poor fit after the search, or the prediction kept)
+        ``poor_fit_sigma_*``, a registered one at most its disagreement with the wheels
+        (``poor_fit_wheel_bound``); a re-anchor that moved the reported pose its own size
+        (the jump is a correction of the drift before it, not a motion the scans measured)."""
         cfg = self.cfg
+        added = np.zeros(2)
         if self.frame == 0 or not cfg.first_registration or cfg.poor_fit_sigma_m <= 0:
-            return
+            return added
         kept = status in (TrackingStatus.LOST, TrackingStatus.PREDICTED)
         if kept or diag.counts.get("rmse", 0.0) > cfg.poor_fit_rmse > 0:
             var = np.array([cfg.poor_fit_sigma_m**2, np.radians(cfg.poor_fit_sigma_deg) ** 2])
             gap = None if kept else self._wheel_gap
             if cfg.poor_fit_wheel_bound and gap is not None:
                 var = np.minimum(var, [gap[0] ** 2 + gap[1] ** 2, gap[2] ** 2])
-            self._poor_var += var
+            added += var
         if diag.counts.get("reanchored") and self._anchor is None:
             jump = [diag.counts["reanchor_jump_m"], np.radians(diag.counts["reanchor_deg"])]
-            self._poor_var += np.square(jump)
+            added += np.square(jump)
+        return added
 
     def _information(self, relative: np.ndarray) -> np.ndarray:
         """6x6 information of the motion since the last keyframe: the planar model times
@@ -618,11 +620,9 @@ class Dpcr2d:
             tag = RegionTag(region, -1 if left is None else left)
         if self._anchor is not None:
             tag = replace(tag or RegionTag(), anchor=self._anchor)
-        poor_before = self._poor_var.copy()
-        self._count_poor_fit(status, diag)
-        spread = self._spread(
-            compose2d(inverse2d(previous), self.pose), self._poor_var - poor_before
-        )
+        poor = self._poor_fit_var(status, diag)
+        self._poor_var += poor
+        spread = self._spread(compose2d(inverse2d(previous), self.pose), poor)
         info = self._information(relative)
         if is_kf:
             self.pose_kf = reported

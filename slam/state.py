@@ -162,8 +162,7 @@ class RunState:
             kf_poses = np.stack([self.estimates[k] for k in self.frame_kf[:n]])
             return kf_poses @ np.stack(self.T_kf_frame[:n])
         frame_kf = np.asarray(self.frame_kf[:n])
-        first = {}
-        for i, k in enumerate(frame_kf.tolist()):
-            first.setdefault(k, i)
+        ids, first = np.unique(frame_kf, return_index=True)  # a keyframe's own frame
+        kf_frames = dict(zip(ids.tolist(), first.tolist(), strict=True))
         odom = np.stack(self.odom_poses[:n])
-        return spread_corrections(odom, frame_kf, first, self.estimates, spread)
+        return spread_corrections(odom, frame_kf, kf_frames, self.estimates, spread)
