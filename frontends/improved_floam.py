@@ -31,6 +31,7 @@ from slam.registration.gicp import (
     gicp_align,
     robust_weights,
 )
+from slam.registration.ground_plane import GroundPlaneConfig, fit_ground, flatten_ground
 from slam.registration.plausibility import PlausibilityConfig
 from slam.registration.pose_prior import MotionPriorConfig, PosePrior
 from slam.registration.se3 import transform
@@ -118,6 +119,8 @@ class ImprovedFloamConfig(CommonConfig):
     registrations and applied to the filtered points (``slam.sensor.beam_calibration``).
     Source covariances know the rings of their support: a one-ring support borrows the other
     rings' points within ``registration.span_distance`` (``estimate_covariances``).
+    ground: source features on the scan's ground plane constrain only along its normal
+    (``slam.registration.ground_plane``): the rings' pattern moves with the sensor.
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -127,6 +130,7 @@ class ImprovedFloamConfig(CommonConfig):
     map: LocalMapConfig = field(default_factory=LocalMapConfig)
     beam_calibration: BeamCalibrationConfig = field(default_factory=BeamCalibrationConfig)
     motion_prior: MotionPriorConfig = field(default_factory=_improved_motion_prior)
+    ground: GroundPlaneConfig = field(default_factory=GroundPlaneConfig)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
     covariance_source: str = "features"
@@ -324,6 +328,10 @@ class ImprovedFloam(ScanToMapFrontend):
             threads=rc.threads,
         )
         q = src if rows is None else src[rows]
+        if cfg.ground.enabled:
+            plane = fit_ground(xyz, cfg.ground)
+            if plane is not None:
+                flatten_ground(q, covs, plane, cfg.ground)
         covs = add_beam_angle_noise(q, covs, np.radians(rc.beam_angle_noise))
         return FeatureCloud(src, covs, rows, reg, rings[src_idx])
 

@@ -15,7 +15,9 @@ def add_parser(sub: Any) -> None:
         "scene",
         help="corridor | plaza (ideal sensor) | park (realistic sensor: calibration errors, "
         "mixed pixels, porous trees, terrain) | urban (car-speed city drive, 1.2 km, up to "
-        "15 m/s, stops, junctions, streets driven both ways; realistic sensor) | building | "
+        "15 m/s, stops, junctions, streets driven both ways; realistic sensor) | street "
+        "(straight 880 m at 15 m/s, a wide avenue of few features) | highway (straight 2 km "
+        "motorway at 25 m/s: guard rails, open verges, overpasses, traffic) | building | "
         "building_loop (paper 001's floor under construction, 1.27 km S-route / 0.41 km "
         "loop) | rooms2d | office2d (2D laser, 360 deg, in floor plans: a CARMEN log)",
     )

@@ -12,11 +12,11 @@ from numba import njit
 
 @njit(cache=True)
 def forward_kernel(
-    az: np.ndarray, rho: np.ndarray, max_back: float, near_shift: float
+    az: np.ndarray, rho: np.ndarray, max_back: float, near_shift: float, max_share: float
 ) -> tuple[np.ndarray, float, bool]:
     """(u, sign, ok) of ``forward_azimuth`` from the (N >= 2,) azimuths (rad) and
     horizontal ranges (m); ok False where the reference gives None for back steps (more
-    than 5 % step back > 1e-3 rad)."""
+    than ``max_share`` step back > 1e-3 rad)."""
     n = az.size
     m = n - 1
     two_pi = 2.0 * np.pi
@@ -50,11 +50,12 @@ def forward_kernel(
         s = step[i] * sign
         if s < -1e-3:
             n_back += 1
-        if s < -max_back and s < -np.arctan2(near_shift, min(rho[i], rho[i + 1])):
+        near = min(rho[i], rho[i + 1])
+        if s < -max_back and near >= near_shift and s < -np.arctan2(near_shift, near):
             s += two_pi
         acc += s
         u[i + 1] = acc
-    return u, sign, n_back / m <= 0.05
+    return u, sign, n_back / m <= max_share
 
 
 @njit(cache=True)
