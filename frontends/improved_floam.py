@@ -120,7 +120,8 @@ class ImprovedFloamConfig(CommonConfig):
     Source covariances know the rings of their support: a one-ring support borrows the other
     rings' points within ``registration.span_distance`` (``estimate_covariances``).
     ground: source features on the scan's ground plane constrain only along its normal
-    (``slam.registration.ground_plane``): the rings' pattern moves with the sensor.
+    (``slam.registration.ground_plane``; sensors of ``ground.min_beams`` or more): the rings'
+    pattern moves with the sensor.
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -328,7 +329,7 @@ class ImprovedFloam(ScanToMapFrontend):
             threads=rc.threads,
         )
         q = src if rows is None else src[rows]
-        if cfg.ground.enabled:
+        if cfg.ground.enabled and len(rings) and int(rings.max()) + 1 >= cfg.ground.min_beams:
             plane = fit_ground(xyz, cfg.ground)
             if plane is not None:
                 flatten_ground(q, covs, plane, cfg.ground)

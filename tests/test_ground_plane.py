@@ -73,6 +73,8 @@ def test_config_is_checked():
         GroundPlaneConfig(min_range=5.0, max_range=2.0)
     with pytest.raises(ConfigError):
         GroundPlaneConfig(in_plane_sigma=0.0)
+    with pytest.raises(ConfigError):
+        GroundPlaneConfig(min_beams=-1)
 
 
 def test_the_rings_pull_a_moving_scan_to_rest_and_the_plane_does_not():
