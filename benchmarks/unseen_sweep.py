@@ -9,10 +9,11 @@ cached) of another seed of a scene (for ``urban`` the seed redraws the buildings
 street furniture, the parked cars, the pedestrians and the traffic, the suspension wobble
 and the sensor noise; the route and its speeds stay) or the ``street`` scene (a straight
 880 m drive at 15 m/s with a 440 m wide avenue of few features and junction stops, made
-for this sweep: ``slam.sim.street``), with one of the simulated sensors (vlp16, hdl32,
-hdl64, os128). ``:strip`` rewrites the bag without ring and time fields (an ``xyzi``
-driver, ``slam.bench.degrade.rewrite_bag``); ``@N`` its first N frames (default
-``--frames``). ``kitti``: the 22 real KITTI-raw HDL-64E scans (no ground truth: the step
+for this sweep: ``slam.sim.street``) or the ``highway`` scene (a straight 2 km motorway from
+rest to 25 m/s with guard rails and open verges: ``slam.sim.highway``), with one of the
+simulated sensors (vlp16, hdl32, hdl64, os128). ``:strip`` rewrites the bag without ring
+and time fields (an ``xyzi`` driver, ``slam.bench.degrade.rewrite_bag``); ``@N`` its first
+N frames (default ``--frames``). ``kitti``: the 22 real KITTI-raw HDL-64E scans (no ground truth: the step
 error is against small_gicp's scan-to-scan GICP chained); ``pair``: the real HDL-32E scan
 pair against its reference transform (front end only, two frames).
 
@@ -53,6 +54,7 @@ CASES = (  # the most telling first: the rows print as they come
     "street:0:hdl64@300",
     "urban:1:os128:strip",
     "urban:1:hdl32:strip",
+    "highway:0:hdl64@300",
 )
 APE_LIMIT_PCT = 2.0  # % of the path
 STEP_LIMIT = 1.0  # m in one frame
