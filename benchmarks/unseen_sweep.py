@@ -13,9 +13,9 @@ for this sweep: ``slam.sim.street``) or the ``highway`` scene (a straight 2 km m
 rest to 25 m/s with guard rails and open verges: ``slam.sim.highway``), with one of the
 simulated sensors (vlp16, hdl32, hdl64, os128). ``:strip`` rewrites the bag without ring
 and time fields (an ``xyzi`` driver, ``slam.bench.degrade.rewrite_bag``); ``@N`` its first
-N frames (default ``--frames``). ``kitti``: the 22 real KITTI-raw HDL-64E scans (no ground truth: the step
-error is against small_gicp's scan-to-scan GICP chained); ``pair``: the real HDL-32E scan
-pair against its reference transform (front end only, two frames).
+N frames (default ``--frames``). ``kitti``: the 22 real KITTI-raw HDL-64E scans (no ground
+truth: the step error is against small_gicp's scan-to-scan GICP chained); ``pair``: the
+real HDL-32E scan pair against its reference transform (front end only, two frames).
 
 One row per case x config, every run in its own process through ``slam run``'s pipeline
 with the recipe's defaults: APE RMSE (SE(3)-aligned) and max, the KITTI

@@ -10,15 +10,8 @@ import pytest
 from slam.bench.peers import run_frontend
 from slam.sensor import estimate_beams
 from slam.sim.highway import highway
-from slam.sim.lidar import simulate_scan_truth
 from slam.sim.sensors import get_sensor
-from slam.sim.simulate import (
-    STAMP0,
-    _compensated,
-    _driver_convention,
-    effective_model,
-    frame_stamps,
-)
+from slam.sim.simulate import STAMP0, effective_model, frame_stamps, published_scan
 from slam.types import Scan
 
 
@@ -36,16 +29,7 @@ def _scans(scene, first: int, count: int) -> tuple[list[Scan], np.ndarray]:
     stamps = frame_stamps(first + count, model)[first:]
     scans, poses = [], []
     for i, stamp in enumerate(stamps):
-        scan, truth = simulate_scan_truth(
-            scene,
-            lambda t: scene.pose_at(np.asarray(t) - STAMP0),
-            float(stamp),
-            model,
-            rng,
-            time_offset=STAMP0,
-        )
-        scan, truth = _driver_convention(scan, truth, model.beams, spec)
-        scan = _compensated(scan, truth)
+        scan, _ = published_scan(scene, float(stamp), model, spec, rng)
         scan.index, scan.ring, scan.time = i, None, None
         scans.append(scan)
         poses.append(scene.pose_at(np.array([float(stamp) - STAMP0]))[0])

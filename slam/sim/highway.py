@@ -61,7 +61,7 @@ def _terrain(b: g.MeshBuilder, rng: np.random.Generator, z) -> None:
         b.add(g.height_field(gx, gy[order], zz[order], g.GRASS))
 
 
-def _barriers(b: g.MeshBuilder, rng: np.random.Generator) -> None:
+def _barriers(b: g.MeshBuilder) -> None:
     """The median's concrete barrier, the outer guard rails (W-beam 0.5-0.85 m, posts every
     2 m) and the delineator posts every 50 m."""
     b.add(g.box_minmax((-80.0, -0.3, 0.0), (LENGTH + 80.0, 0.3, 0.9), g.CONCRETE))
@@ -111,7 +111,7 @@ def _vegetation(b: g.MeshBuilder, rng: np.random.Generator, z) -> None:
             x += rng.uniform(80.0, 200.0)
 
 
-def _structures(b: g.MeshBuilder, rng: np.random.Generator) -> None:
+def _structures(b: g.MeshBuilder) -> None:
     """The overpasses (deck 5.5-6.7 m over the road, piers at the rails and the median),
     the sign gantries and the noise wall on the right."""
     for x in OVERPASSES:
@@ -172,9 +172,9 @@ def highway(seed: int = 0, *, pedestrians: bool = True) -> Scene:
     b = g.MeshBuilder()
     z = _verge_height(rng)
     _terrain(b, rng, z)
-    _barriers(b, rng)
+    _barriers(b)
     _vegetation(b, rng, z)
-    _structures(b, rng)
+    _structures(b)
     movers = _traffic(rng) if pedestrians else []
     traj = _drive(rng)
     return Scene.from_builder(

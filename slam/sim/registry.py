@@ -57,9 +57,7 @@ SCENES: dict[str, SceneEntry] = {
     "street": SceneEntry(
         "slam.sim.street:street", ("street.py", "urban.py", "scenes.py"), realistic=True
     ),
-    "highway": SceneEntry(
-        "slam.sim.highway:highway", ("highway.py", "urban.py", "scenes.py"), realistic=True
-    ),
+    "highway": SceneEntry("slam.sim.highway:highway", ("highway.py", "urban.py"), realistic=True),
     "building": SceneEntry("slam.sim.building:building", ("building.py",), realistic=True),
     "building_loop": SceneEntry(
         "slam.sim.building:building_loop", ("building.py",), realistic=True

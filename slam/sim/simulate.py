@@ -140,19 +140,29 @@ def iter_scans(
     spec = get_sensor(sensor)
     model = effective_model(scene, model, sensor)
     rng = np.random.default_rng([seed, 7])
-
-    def pose_at(times: np.ndarray) -> np.ndarray:
-        return scene.pose_at(np.asarray(times) - STAMP0)
-
     for i, stamp in enumerate(frame_stamps(frames, model)):
-        scan, truth = simulate_scan_truth(
-            scene, pose_at, float(stamp), model, rng, time_offset=STAMP0
-        )
-        scan, truth = _driver_convention(scan, truth, model.beams, spec)
-        if spec.motion_compensated:
-            scan = _compensated(scan, truth)
+        scan, truth = published_scan(scene, float(stamp), model, spec, rng)
         scan.index = i
         yield (scan, truth) if with_truth else scan
+
+
+def published_scan(
+    scene: Scene, stamp: float, model: LidarModel, spec: SensorSpec, rng: np.random.Generator
+) -> tuple[Scan, ScanTruth]:
+    """The sweep at header ``stamp`` (s) as ``spec``'s driver publishes it (point order,
+    ring numbering, motion compensation), with its truth."""
+    scan, truth = simulate_scan_truth(
+        scene,
+        lambda times: scene.pose_at(np.asarray(times) - STAMP0),
+        stamp,
+        model,
+        rng,
+        time_offset=STAMP0,
+    )
+    scan, truth = _driver_convention(scan, truth, model.beams, spec)
+    if spec.motion_compensated:
+        scan = _compensated(scan, truth)
+    return scan, truth
 
 
 def bag_path(out: Path, scene: str, fmt: str) -> Path:
