@@ -31,7 +31,7 @@ from slam.registration.gicp import (
     gicp_align,
     robust_weights,
 )
-from slam.registration.ground_plane import GroundPlaneConfig, fit_ground, flatten_ground
+from slam.registration.ground_plane import GroundPlaneConfig, flatten_ground, scan_ground
 from slam.registration.plausibility import PlausibilityConfig
 from slam.registration.pose_prior import MotionPriorConfig, PosePrior
 from slam.registration.se3 import transform
@@ -329,10 +329,9 @@ class ImprovedFloam(ScanToMapFrontend):
             threads=rc.threads,
         )
         q = src if rows is None else src[rows]
-        if cfg.ground.enabled and len(rings) and int(rings.max()) + 1 >= cfg.ground.min_beams:
-            plane = fit_ground(xyz, cfg.ground)
-            if plane is not None:
-                flatten_ground(q, covs, plane, cfg.ground)
+        plane = scan_ground(xyz, rings, cfg.ground)
+        if plane is not None:
+            flatten_ground(q, covs, plane, cfg.ground)
         covs = add_beam_angle_noise(q, covs, np.radians(rc.beam_angle_noise))
         return FeatureCloud(src, covs, rows, reg, rings[src_idx])
 

@@ -26,7 +26,13 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
-from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
+from slam.registration.ground_plane import GroundPlaneConfig, on_ground, scan_ground
+from slam.registration.two_step import (
+    FixedNormals,
+    TwoStepConfig,
+    two_step_align,
+    weak_translation,
+)
 from slam.types import Scan
 
 
@@ -105,6 +111,13 @@ def _plane_map() -> LocalMapConfig:
     return LocalMapConfig(voxel_size=0.4, max_points_per_voxel=2)
 
 
+def _ground_plane() -> GroundPlaneConfig:
+    # raw returns (no SOR) at up to 30 m lie up to 0.2 m off the fitted plane; on the 32-beam
+    # nuScenes keyframes (2 Hz, 1-5 m apart) LeGO's few edges need what the rings hold
+    # (lego_loam 138 -> 229 cm APE with the plane, lego_lpb 91 -> 96 cm), hence 64 beams
+    return GroundPlaneConfig(band=0.2, min_beams=64)
+
+
 @dataclass
 class LegoLoamConfig(CommonConfig):
     """LeGO-LOAM settings: segmentation, features, thinning (see ``LegoFeatureConfig``), the
@@ -115,7 +128,12 @@ class LegoLoamConfig(CommonConfig):
     ~27k) the matching uses a density-aware subset of that many (``thin_to_count``: both
     voxels grown by the same factor; edges are all kept), the maps still receive every
     feature; 0 = no cap, LeGO-LOAM's default (8000 moved its HDL-64E urban APE 1.87 -> 2.35
-    cm over 60 frames, OS-128 4.57 -> 4.48 cm; LeGO-LOAM-LPB uses 8000)."""
+    cm over 60 frames, OS-128 4.57 -> 4.48 cm; LeGO-LOAM-LPB uses 8000).
+    ground_plane: the scan's fitted ground plane (``slam.registration.ground_plane``;
+    sensors of ``ground_plane.min_beams`` or more): ground points on it match along its
+    normal, so that the map's ground rings cannot hold the scan at rest (simulated motorway
+    started at 9 m/s: first steps 0.16 / -0.09 / -0.29 m for 0.91 m without it;
+    docs/paper001.md, "The ground's rings")."""
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -126,6 +144,7 @@ class LegoLoamConfig(CommonConfig):
     edge_map: LocalMapConfig = field(default_factory=_edge_map)
     plane_map: LocalMapConfig = field(default_factory=_plane_map)
     max_surface_points: int = 0
+    ground_plane: GroundPlaneConfig = field(default_factory=_ground_plane)
 
     def __post_init__(self) -> None:
         if self.max_surface_points < 0:
@@ -205,7 +224,13 @@ class LegoLoam(ScanToMapFrontend):
         t = time.perf_counter()
         est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]))
         if len(self.edge_map) + len(self.plane_map) >= 10:
-            est.result = self._align(self._registered(f), T_pred, wide, self._iterations(scan))
+            reg = self._registered(f)
+            plane = scan_ground(scan.xyz, self._ring(scan), self.cfg.ground_plane)
+            fixed = None
+            if plane is not None:
+                rows = on_ground(reg.ground, plane, self.cfg.ground_plane.band)
+                fixed = FixedNormals(rows, plane[0])
+            est.result = self._align(reg, T_pred, wide, self._iterations(scan), fixed)
             est.pose = est.result.T_target_source
             rc = self.cfg.registration
             if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
@@ -231,9 +256,17 @@ class LegoLoam(ScanToMapFrontend):
             return rc.max_iterations
         return rc.max_iterations * int(np.clip(round(period / rc.iteration_period), 1, 5))
 
-    def _align(self, f: LegoFeatures, T_pred: np.ndarray, wide: bool, iterations: int):
+    def _align(
+        self,
+        f: LegoFeatures,
+        T_pred: np.ndarray,
+        wide: bool,
+        iterations: int,
+        fixed: FixedNormals | None = None,
+    ):
         """Two-step LM and 6-DoF refinement against the maps from ``T_pred`` (a coarse pass
-        with a wider search first when ``wide``), at most ``iterations`` LM iterations."""
+        with a wider search first when ``wide``), at most ``iterations`` LM iterations;
+        ``fixed``: the ground points on the scan's ground plane and its normal."""
         cfg = self.cfg
         e_map, p_map = self._targets()
         rc = replace(cfg.registration, max_iterations=iterations)
@@ -249,11 +282,12 @@ class LegoLoam(ScanToMapFrontend):
             )
             T0 = two_step_align(
                 f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane,
-                ground_residual_xyz=g_res,
+                ground_residual_xyz=g_res, ground_normal=fixed,
             ).T_target_source  # fmt: skip
         return two_step_align(
-            f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane, ground_residual_xyz=g_res
-        )
+            f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane,
+            ground_residual_xyz=g_res, ground_normal=fixed,
+        )  # fmt: skip
 
     def _map_size(self) -> int:
         return len(self.edge_map) + len(self.plane_map)

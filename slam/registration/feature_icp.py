@@ -4,7 +4,10 @@ For each edge point of the scan: its 5 nearest edge-map points; when their covar
 dominant direction (largest eigenvalue > ``edge_ratio`` x the second) they form a line and
 the residual is the distance of the point to that line. For each plane point: its 5 nearest
 plane-map points; when a least-squares plane fits them (all within ``plane_threshold``) the
-residual is the point-to-plane distance. Both are written as e^T W e with W the projector
+residual is the point-to-plane distance; plane points on the scan's fitted ground plane use
+its normal instead (the 5 map neighbours of a ground point lie on one ring, whose fitted
+"plane" may stand across the ring and hold the scan at the map's rings: docs/paper000.md,
+"The ground's rings"). Both are written as e^T W e with W the projector
 onto the line's normal space (I - v v^T) or the plane normal (n n^T), so the weighted SE(3)
 Gauss-Newton solver of ``gicp`` minimises them jointly, with Huber weights (FLOAM: 0.1 m),
 re-associating every iteration, all correspondences vectorised.
@@ -144,11 +147,24 @@ def _edge_terms(edges: np.ndarray, moved: np.ndarray, nh, cfg: FeatureIcpConfig)
     return edges[ok][line], c[line], P, np.linalg.norm(e, axis=1)
 
 
-def _plane_terms(planes: np.ndarray, moved: np.ndarray, nh, cfg: FeatureIcpConfig) -> Terms:
+def _plane_terms(
+    planes: np.ndarray,
+    moved: np.ndarray,
+    nh,
+    cfg: FeatureIcpConfig,
+    ground: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Terms:
     """Point-to-plane terms of the plane points whose map neighbours all lie within
-    plane_threshold (m) of their plane: W = n n^T, residual |n . (p - c)| (m)."""
+    plane_threshold (m) of their plane: W = n n^T, residual |n . (p - c)| (m). ``ground``:
+    (mask (N,), normal n (3,) in the map frame at the current pose) of the points on the
+    scan's ground, whose plane normal is n."""
     ok, c, w, V, centred = nh
     n = V[:, :, 0]
+    if ground is not None:
+        g = ground[0][ok]
+        if g.any():
+            n = n.copy()
+            n[g] = ground[1]
     flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
     n = n[flat]
     r = np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n))
@@ -162,11 +178,16 @@ def feature_icp_align(
     plane_map: FeatureTarget | None,
     init_T: np.ndarray | None = None,
     cfg: FeatureIcpConfig | None = None,
+    ground: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RegistrationResult:
-    """Align scan edge/plane points to the edge/plane maps; returns T_map_scan and H."""
+    """Align scan edge/plane points to the edge/plane maps; returns T_map_scan and H.
+    ``ground``: (mask (N_planes,) bool, unit normal (3,) in the sensor frame) of the plane
+    points on the scan's ground plane, which constrain along that normal only."""
     cfg = cfg or FeatureIcpConfig()
     edges = _check_points(edge_xyz, "edge points")
     planes = _check_points(plane_xyz, "plane points")
+    if ground is not None and len(ground[0]) != len(planes):
+        raise ValueError(f"ground mask has {len(ground[0])} rows for {len(planes)} plane points")
     if len(edges) + len(planes) < 6:
         raise RegistrationError(
             f"feature ICP needs at least 6 feature points, got {len(edges) + len(planes)}"
@@ -183,7 +204,8 @@ def feature_icp_align(
         moved = transform(T, planes)
         nh = plane_nh(moved)
         if nh is not None:
-            terms.append(_plane_terms(planes, moved, nh, cfg))
+            g = None if ground is None else (ground[0], T[:3, :3] @ ground[1])
+            terms.append(_plane_terms(planes, moved, nh, cfg, g))
         if not terms:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), None, np.zeros(0)
         ps, qs, Ws, rs = zip(*terms, strict=True)

@@ -78,14 +78,32 @@ def fit_ground(xyz: np.ndarray, cfg: GroundPlaneConfig) -> tuple[np.ndarray, flo
     return n, float(d)
 
 
+def scan_ground(
+    xyz: np.ndarray, rings: np.ndarray | None, cfg: GroundPlaneConfig
+) -> tuple[np.ndarray, float] | None:
+    """``fit_ground`` of a scan whose sensor has ``min_beams`` or more (rings (N,) beam
+    indices), when ``enabled``; else None."""
+    if not cfg.enabled or rings is None or not len(rings):
+        return None
+    if int(rings.max()) + 1 < cfg.min_beams:
+        return None
+    return fit_ground(xyz, cfg)
+
+
+def on_ground(points: np.ndarray, plane: tuple[np.ndarray, float], band: float) -> np.ndarray:
+    """(N,) which ``points`` (N, 3, the plane's frame) lie within ``band`` m of ``plane``."""
+    n, d = plane
+    return np.abs(points @ n + d) < band
+
+
 def flatten_ground(
     points: np.ndarray, covs: np.ndarray, plane: tuple[np.ndarray, float], cfg: GroundPlaneConfig
 ) -> np.ndarray:
     """(N,) which ``points`` lie within ``band`` m of ``plane``; their ``covs`` (N, 3, 3, m^2)
     become n n^T (n^T Sigma n) + in_plane_sigma^2 (I - n n^T) in place: the measured spread
     along the normal, none of the rings' pattern along the plane."""
-    n, d = plane
-    on = np.abs(points @ n + d) < cfg.band
+    n = plane[0]
+    on = on_ground(points, plane, cfg.band)
     if on.any():
         nn = np.outer(n, n)
         along = np.einsum("i,nij,j->n", n, covs[on], n)

@@ -68,6 +68,16 @@ def _tail_small(xi: np.ndarray, prev: np.ndarray | None, epsilon: float) -> bool
     return True
 
 
+def _revisits(T: np.ndarray, earlier: list[np.ndarray], tolerance: float) -> bool:
+    """Whether T is within ``tolerance`` m and rad of any of the ``earlier`` poses."""
+    for E in earlier:
+        D = np.linalg.inv(E) @ T
+        angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+        if np.linalg.norm(D[:3, 3]) < tolerance and angle < tolerance:
+            return True
+    return False
+
+
 def _associate_and_linearise(
     associate: Associate, T: np.ndarray, lin: Linearise, reference: bool, min_inliers: int
 ) -> tuple:
@@ -166,6 +176,7 @@ def solve_weighted(
     reference: bool = False,
     predict_convergence: bool = False,
     prior: PosePrior | None = None,
+    cycle_tolerance: float = 0.0,
 ) -> RegistrationResult:
     """Gauss-Newton / Levenberg-Marquardt on SE(3) with re-association every iteration.
 
@@ -180,6 +191,10 @@ def solve_weighted(
     step is saved (docs/paper000.md). The Hessian returned is the last association's.
     prior: a Gaussian prior on the pose (``PosePrior``) added to every step and its cost;
     the Hessian and cost returned are the scan's alone (its own information).
+    cycle_tolerance (m, 0 = off): stop ("cycle", converged) when the pose comes back within
+    this distance and cycle_tolerance rad of the pose 2-4 iterations before: the
+    re-association cycles through a few sets of pairs around the minimum (a weakly
+    constrained direction: a motorway's length) and no further step settles it.
     """
     lin, cost_of = (_linearise, _cost) if reference else (kernels.linearise, kernels.cost)
     step_cost = cost_of if prior is None else _with_prior(cost_of, prior)
@@ -189,6 +204,7 @@ def solve_weighted(
     reason = "max_iterations"
     H, b = np.zeros((6, 6)), np.zeros(6)
     cost, n_in, sqd, iterations = 0.0, 0, np.zeros(0), 0
+    visited: list[np.ndarray] = []
     for it in range(1, max_iterations + 1):
         iterations = it
         p, q, W, w, sqd, H, b, cost = _associate_and_linearise(
@@ -216,4 +232,9 @@ def solve_weighted(
             reason = "step"
             break
         prev_xi = xi
+        if cycle_tolerance > 0:
+            if _revisits(T, visited[-4:-1], cycle_tolerance):
+                reason = "cycle"
+                break
+            visited.append(T.copy())
     return _result(T, H, b, cost, sqd, n_in, num_source, iterations, reason, residual_dims)

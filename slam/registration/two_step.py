@@ -66,6 +66,11 @@ class TwoStepConfig:
     noise_floor: float = 0.02
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
+    # the 6-DoF refinement stops as converged when its pose comes back within this many m
+    # (and rad) of one 2-4 iterations before: a cycle of pairs along a weak direction (a
+    # motorway's length: LeGO-LOAM-LPB cycled 1 cm along it for 20 iterations, and the
+    # start's unconverged frames were rejected); 0 = off
+    cycle_tolerance: float = 0.002
     # LOAM's solution remapping: translation directions with less than this fraction of the
     # best direction's information keep the prediction; 0 = off
     degenerate_ratio: float = 0.0
@@ -112,6 +117,21 @@ class Terms:
         return cls(
             *(np.concatenate([getattr(t, f) for t in parts]) for f in ("p", "c", "W", "w", "sqd"))
         )
+
+
+@dataclass
+class FixedNormals:
+    """Plane points whose normal is known: ``rows`` (N,) bool of a point set, ``normal`` (3,)
+    unit vector in the sensor frame (the scan's fitted ground: the map neighbours of a ground
+    point lie on one or two rings, whose fitted plane may stand across them and hold the scan
+    at the map's rings; docs/paper001.md, "The ground's rings")."""
+
+    rows: np.ndarray
+    normal: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.rows = np.asarray(self.rows, dtype=bool)
+        self.normal = np.asarray(self.normal, dtype=np.float64)
 
 
 def _scaled(t: Terms, floor: float) -> Terms:
@@ -253,9 +273,13 @@ def plane_terms(
     target: FeatureTarget | None,
     cfg: TwoStepConfig,
     cache: NeighbourCache | None = None,
+    fixed: FixedNormals | None = None,
 ) -> Terms:
     """Point-to-plane residuals of plane points ``pts`` (sensor frame) at pose T; ``cache``
-    keeps the neighbourhood analyses of ``pts`` between calls."""
+    keeps the neighbourhood analyses of ``pts`` between calls. ``fixed``: the rows whose
+    plane normal is known (the scan's ground): which neighbourhoods are planes is LOAM's
+    test as for any row (testing them against the known normal instead let terms flip in
+    and out at the 5 cm threshold and the solver cycle), their residual is along it."""
     moved = transform(T, pts)
     nh = _knn(moved, target, cfg, cache, pts)
     if nh is None:
@@ -264,6 +288,11 @@ def plane_terms(
     n = V[:, :, 0]
     flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
     flat &= w[:, 1] > cfg.plane_min_spread**2
+    if fixed is not None:
+        g = fixed.rows[ok]
+        if g.any():
+            n = n.copy()
+            n[g] = T[:3, :3] @ fixed.normal
     n = n[flat]
     r = np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n))
     t = Terms(
@@ -395,13 +424,14 @@ def _two_steps(
     ground_plane: tuple[np.ndarray, float] | None,
     cfg: TwoStepConfig,
     cache: NeighbourCache | None = None,
+    fixed: FixedNormals | None = None,
 ) -> np.ndarray:
     """T after LeGO-LOAM's two restricted steps: [roll, pitch, z] from the ground points on
     the plane map (+ E_ground when ``ground_plane`` is given), then [yaw, x, y] from the
     edges on the edge map (section III-D)."""
 
     def step1(T_: np.ndarray) -> Terms:
-        parts = [plane_terms(T_, ground, plane_map, cfg, cache)]
+        parts = [plane_terms(T_, ground, plane_map, cfg, cache, fixed)]
         if ground_plane is not None:
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         return Terms.join(parts)
@@ -424,6 +454,7 @@ def _refine(
     n_src: int,
     cfg: TwoStepConfig,
     cache: NeighbourCache | None = None,
+    fixed: FixedNormals | None = None,
 ) -> RegistrationResult:
     """The 6-DoF refinement from T: E = E_edge + E_plane (+ E_ground when ``ground_plane`` is
     given), the energy of 3.3, by ``solve_weighted``."""
@@ -431,7 +462,7 @@ def _refine(
     def associate(T_: np.ndarray):
         parts = [
             edge_terms(T_, edges, edge_map, cfg, cache),
-            plane_terms(T_, surf, plane_map, cfg, cache),
+            plane_terms(T_, surf, plane_map, cfg, cache, fixed),
         ]
         if ground_plane is not None:
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
@@ -446,6 +477,7 @@ def _refine(
         transformation_epsilon=cfg.transformation_epsilon,
         fitness_epsilon=cfg.fitness_epsilon,
         residual_dims=1,
+        cycle_tolerance=cfg.cycle_tolerance,
     )
 
 
@@ -460,6 +492,7 @@ def two_step_align(
     ground_plane: tuple[np.ndarray, float] | None = None,
     *,
     ground_residual_xyz: np.ndarray | None = None,
+    ground_normal: FixedNormals | None = None,
 ) -> RegistrationResult:
     """Align a scan's features to the edge/plane maps: [roll, pitch, z] from the ground
     points, [yaw, x, y] from the edges, then a 6-DoF refinement on edges + planes (+ ground
@@ -468,6 +501,8 @@ def two_step_align(
     ``ground_residual_xyz``: the points of E_ground (default: ``ground_xyz``), e.g. the
     inliers of this scan's own plane fit, whose mean distance to their plane is zero, so
     that the chained frame-to-frame constraint has no bias from kerbs or wall feet.
+    ``ground_normal``: the ground points (rows of ``ground_xyz``) on the scan's fitted
+    ground plane and its normal, which their point-to-plane terms use.
     Returns T_map_scan with the Hessian of the final step (``solve_weighted``); with
     ``cfg.degenerate_ratio`` > 0 its weak translation directions keep ``init_T``
     (``remapped``)."""
@@ -487,10 +522,19 @@ def two_step_align(
     )
     T_start = T.copy()
     cache = NeighbourCache()
+    fixed = surf_fixed = None
+    if ground_normal is not None:
+        if len(ground_normal.rows) != len(ground):
+            raise ValueError(
+                f"ground_normal has {len(ground_normal.rows)} rows for {len(ground)} points"
+            )
+        fixed = ground_normal
+        rows = np.concatenate([fixed.rows, np.zeros(len(planes), dtype=bool)])
+        surf_fixed = FixedNormals(rows, fixed.normal)
     if cfg.two_step and cfg.step_iterations > 0:
-        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache)
+        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache, fixed)
     surf = np.concatenate([ground, planes])
-    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache)
+    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed)
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
     return res
