@@ -68,12 +68,23 @@ def _tail_small(xi: np.ndarray, prev: np.ndarray | None, epsilon: float) -> bool
     return True
 
 
-def _revisits(T: np.ndarray, earlier: list[np.ndarray], tolerance: float) -> bool:
-    """Whether T is within ``tolerance`` m and rad of any of the ``earlier`` poses."""
-    for E in earlier:
-        D = np.linalg.inv(E) @ T
-        angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-        if np.linalg.norm(D[:3, 3]) < tolerance and angle < tolerance:
+def _apart(A: np.ndarray, B: np.ndarray) -> float:
+    """The larger of the translation (m) and rotation (rad) between two poses."""
+    D = np.linalg.inv(A) @ B
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    return max(float(np.linalg.norm(D[:3, 3])), float(angle))
+
+
+def _cycles(T: np.ndarray, visited: list[np.ndarray], tolerance: float) -> bool:
+    """Whether T came back within ``tolerance`` of a pose 2-4 iterations before after the
+    poses in between went more than 2.5 ``tolerance`` away from it (slow steady progress
+    is no cycle)."""
+    for m in (2, 3, 4):
+        if len(visited) < m:
+            break
+        E = visited[-m]
+        away = max(_apart(E, V) for V in visited[-m + 1 :])
+        if _apart(E, T) < tolerance and away > 2.5 * tolerance:
             return True
     return False
 
@@ -192,7 +203,8 @@ def solve_weighted(
     prior: a Gaussian prior on the pose (``PosePrior``) added to every step and its cost;
     the Hessian and cost returned are the scan's alone (its own information).
     cycle_tolerance (m, 0 = off): stop ("cycle", converged) when the pose comes back within
-    this distance and cycle_tolerance rad of the pose 2-4 iterations before: the
+    this distance and cycle_tolerance rad of the pose 2-4 iterations before, having gone
+    more than 2.5x as far in between (``_cycles``): the
     re-association cycles through a few sets of pairs around the minimum (a weakly
     constrained direction: a motorway's length) and no further step settles it.
     """
@@ -233,7 +245,7 @@ def solve_weighted(
             break
         prev_xi = xi
         if cycle_tolerance > 0:
-            if _revisits(T, visited[-4:-1], cycle_tolerance):
+            if _cycles(T, visited, cycle_tolerance):
                 reason = "cycle"
                 break
             visited.append(T.copy())

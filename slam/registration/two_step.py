@@ -67,10 +67,12 @@ class TwoStepConfig:
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
     # the 6-DoF refinement stops as converged when its pose comes back within this many m
-    # (and rad) of one 2-4 iterations before: a cycle of pairs along a weak direction (a
-    # motorway's length: LeGO-LOAM-LPB cycled 1 cm along it for 20 iterations, and the
-    # start's unconverged frames were rejected); 0 = off
-    cycle_tolerance: float = 0.002
+    # (and rad) of one 2-4 iterations before, having gone 2.5x as far in between: a cycle
+    # of pairs along a weak direction (a motorway's length: LeGO-LOAM-LPB cycled 1 cm along
+    # it for 20 iterations, and the start's unconverged frames were rejected); 0 = off,
+    # LeGO-LOAM's (on, its nuScenes keyframes went 138 -> 296 cm: which frames converge
+    # decides that chaotic run)
+    cycle_tolerance: float = 0.0
     # LOAM's solution remapping: translation directions with less than this fraction of the
     # best direction's information keep the prediction; 0 = off
     degenerate_ratio: float = 0.0
