@@ -38,9 +38,15 @@ import numpy as np
 from slam.bench.degrade import thin_carmen
 from slam.config import load_config
 from slam.eval.metrics import read_trajectory
-from slam.eval.relations import read_relations, relation_errors, write_relations
+from slam.eval.relations import (
+    match_stamps,
+    read_relations,
+    relation_errors,
+    relations_in_frame,
+    write_relations,
+)
 from slam.eval.self_relations import SelfRelationConfig, revisit_relations, self_relations
-from slam.io.carmen import CarmenSource
+from slam.io.carmen import CarmenSource, mount_matrix
 from slam.run import run_one
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "laser2d"
@@ -48,10 +54,16 @@ LOGS = ("intel", "fr079", "mit-csail")
 METHODS = ("icp2d", "dpcr2d", "dpcr2d_regions")
 
 
-def load_log(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """stamps, scans ((N, 2) within 0.05-30 m) and wheel odometry (K, 3) of a CARMEN log."""
+def load_log(
+    log: Path, frames: int | None
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """stamps (the log's own, as the trajectory files carry them), scans ((N, 2) within
+    0.05-30 m, the laser's frame), wheel odometry (K, 3) of a CARMEN log, and the laser's
+    mount on the robot (4x4: relations between scans -> between the robot's poses, the
+    trajectory files' frame)."""
     stamps, scans, odom = [], [], []
-    for n, scan in enumerate(CarmenSource(log)):
+    source = CarmenSource(log)
+    for n, scan in enumerate(source):
         if frames is not None and n >= frames:
             break
         if not hasattr(scan, "xyz"):  # a damaged line
@@ -61,7 +73,8 @@ def load_log(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray
         scans.append(xy[(r > 0.05) & (r < 30.0)])
         stamps.append(float(scan.stamp))
         odom.append(np.asarray(scan.odom, dtype=np.float64))
-    return np.array(stamps), scans, np.array(odom)
+    mount = mount_matrix(source.mount)
+    return source.output_stamps(np.array(stamps)), scans, np.array(odom), mount
 
 
 def log_relations(log: Path, frames: int | None, out: Path) -> tuple[Path, dict]:
@@ -70,9 +83,10 @@ def log_relations(log: Path, frames: int | None, out: Path) -> tuple[Path, dict]
     meta = path.with_suffix(".json")
     if path.is_file() and meta.is_file():
         return path, json.loads(meta.read_text())
-    stamps, scans, odom = load_log(log, frames)
+    stamps, scans, odom, mount = load_log(log, frames)
     t = time.process_time()
     rel, stats = self_relations(stamps, scans, odom, SelfRelationConfig())
+    rel = relations_in_frame(rel, mount)
     info = {"scans": len(stamps), "pairs": stats.pairs, "kept": stats.kept,
             "rejected": stats.rejected, "cpu_s": time.process_time() - t}  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
@@ -87,15 +101,16 @@ def log_revisits(log: Path, frames: int | None, out: Path, trajs: list[Path]) ->
     meta = path.with_suffix(".json")
     if path.is_file() and meta.is_file():
         return path, json.loads(meta.read_text())
-    stamps, scans, odom = load_log(log, frames)
+    stamps, scans, odom, mount = load_log(log, frames)
     proposers = [odom]
     for traj in trajs:
         st, T = read_trajectory(traj)
-        k = np.clip(np.searchsorted(st, stamps), 0, len(st) - 1)
+        k = np.maximum(match_stamps(st, stamps, 1e-3), 0)
         proposers.append(np.column_stack([T[k, 0, 3], T[k, 1, 3],
                                           np.arctan2(T[k, 1, 0], T[k, 0, 0])]))  # fmt: skip
     t = time.process_time()
     rel, stats = revisit_relations(stamps, scans, odom, proposers)
+    rel = relations_in_frame(rel, mount)
     info = {"scans": len(stamps), "pairs": stats.pairs, "kept": stats.kept,
             "rejected": stats.rejected, "cpu_s": time.process_time() - t,
             "proposed_by": ["wheels"] + [str(p) for p in trajs]}  # fmt: skip

@@ -26,7 +26,7 @@ import numpy as np
 
 from benchmarks.bench_2d_real import load_log
 from benchmarks.visit_graph_replay import parse_sets, poses_at
-from slam.eval.relations import read_relations, relation_errors
+from slam.eval.relations import match_stamps, read_relations, relation_errors, relations_in_frame
 from slam.mapping.grid2d import compose2d, inverse2d, matrix_to_pose2, pose2_to_matrix, wrap
 from slam.visit_graph import VisitGraphConfig, run_visit_graph, vertex_scans
 
@@ -50,12 +50,13 @@ def score(stamps: np.ndarray, poses: np.ndarray, rel_path: Path) -> dict:
             "median_cm": 100 * s["trans_m"]["median"], "rot_deg": s["rot_deg"]["mean"]}  # fmt: skip
 
 
-def audit(stamps, fe, vg, anchors, cfg, rel_path: Path) -> list[dict]:
+def audit(stamps, fe, vg, anchors, cfg, rel_path: Path, mount: np.ndarray) -> list[dict]:
     """Per accepted loop edge and per revisit relation joining its two visits: the edge's
-    and the front end's error against the relation's z (x, y in j's frame, theta)."""
-    rel = read_relations(rel_path)
-    k1 = np.searchsorted(stamps, rel.t1 - 1e-4)
-    k2 = np.searchsorted(stamps, rel.t2 - 1e-4)
+    and the front end's error against the relation's z (x, y in j's frame, theta); ``fe``
+    the laser's poses, the relations (the robot's) moved to the laser by ``mount``."""
+    rel = relations_in_frame(read_relations(rel_path), np.linalg.inv(mount))
+    k1 = match_stamps(stamps, rel.t1, 1e-3)
+    k2 = match_stamps(stamps, rel.t2, 1e-3)
     lo = np.r_[0, np.maximum(anchors[:-1] + 1 - cfg.pad, 0)]
     rows = []
     for j, i, z in vg.loops:
@@ -101,10 +102,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", default=[], help="VisitGraphConfig key=value")
     ap.add_argument("--rows", type=Path, default=None, help="write the per-pair rows (json)")
     args = ap.parse_args(argv)
-    stamps, scans, _ = load_log(args.log, None)
-    fe = poses_at(args.run / "odometry.tum", stamps)
+    stamps, scans, _, mount = load_log(args.log, None)
+    fe = poses_at(args.run / "odometry.tum", stamps)  # the robot's poses, as the files give
+    m = matrix_to_pose2(mount)  # the scans are the laser's: the replay runs in its frame
+    fe_laser = np.array([compose2d(p, m) for p in fe])
     cfg = pipeline_config(**parse_sets(args.set))
-    poses, vg = run_visit_graph(fe, scans, cfg)
+    replay, vg = run_visit_graph(fe_laser, scans, cfg)
+    poses = np.array([compose2d(p, inverse2d(m)) for p in replay])
     anchors = vertex_scans(len(scans), cfg.visit_scans)
     report = {"loops": len(vg.loops), "gated_off": 0 if vg.gate is None else int(vg.gate.off.sum())}
     for name, P in (("front_end", fe), ("replay", poses),
@@ -112,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
         report[name] = {"revisit": score(stamps, P, args.revisits)}
         if args.short is not None:
             report[name]["short"] = score(stamps, P, args.short)
-    rows = audit(stamps, fe, vg, anchors, cfg, args.revisits)
+    rows = audit(stamps, fe_laser, vg, anchors, cfg, args.revisits, mount)
     report["audit"] = summarise(rows)
     print(json.dumps(report, indent=1, default=str))
     if args.rows is not None:

@@ -29,7 +29,7 @@ from slam.eval.map2d import (
 )
 from slam.eval.metrics import evaluate, evaluate_arrays, read_trajectory
 from slam.io.carmen import CarmenSource
-from slam.mapping.grid2d import matrix_to_pose2, pose2_to_matrix
+from slam.mapping.grid2d import compose2d, matrix_to_pose2, pose2_to_matrix
 from slam.visit_graph import (
     VisitGraphConfig,
     run_visit_graph,
@@ -38,10 +38,15 @@ from slam.visit_graph import (
 from slam.visit_refine import offset_stats, visit_offsets
 
 
-def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """stamps, scans (N, 2) within 0.05-30 m, wheel odometry (K, 3) of a CARMEN log."""
+def load_scans(
+    log: Path, frames: int | None
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """stamps (the log's own, as the trajectory files carry them), scans (N, 2) within
+    0.05-30 m (the laser's frame), wheel odometry (K, 3) of a CARMEN log, and the laser's
+    mount on the robot (x, y, theta)."""
     stamps, scans, odom = [], [], []
-    for n, scan in enumerate(CarmenSource(log)):
+    source = CarmenSource(log)
+    for n, scan in enumerate(source):
         if frames is not None and n >= frames:
             break
         xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
@@ -49,11 +54,13 @@ def load_scans(log: Path, frames: int | None) -> tuple[np.ndarray, list[np.ndarr
         scans.append(xy[(r > 0.05) & (r < 30.0)])
         stamps.append(float(scan.stamp))
         odom.append(np.asarray(scan.odom, dtype=np.float64))
-    return np.array(stamps), scans, np.array(odom)
+    return source.output_stamps(np.array(stamps)), scans, np.array(odom), source.mount
 
 
-def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
-    """(K, 3) poses of a TUM trajectory at ``stamps`` (every scan must be in it)."""
+def poses_at(path: Path, stamps: np.ndarray, mount: np.ndarray | None = None) -> np.ndarray:
+    """(K, 3) poses of a TUM trajectory at ``stamps`` (every scan must be in it); with the
+    laser's ``mount`` (x, y, theta on the robot) the laser's poses of the robot's in the
+    file."""
     st, T = read_trajectory(path)
     order = np.argsort(st)
     st = np.asarray(st, dtype=np.float64)[order]
@@ -62,7 +69,8 @@ def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
     gap = np.abs(st[pos] - stamps)
     if gap.max() > 1e-3:
         raise SystemExit(f"{path}: no pose within 1 ms of stamp {stamps[np.argmax(gap)]:.6f}")
-    return np.array([matrix_to_pose2(T[order[k]]) for k in pos])
+    poses = np.array([matrix_to_pose2(T[order[k]]) for k in pos])
+    return poses if mount is None else np.array([compose2d(p, mount) for p in poses])
 
 
 def walls(poses: np.ndarray, scans: list[np.ndarray], every: int = 2) -> dict:
@@ -163,8 +171,8 @@ def write_outputs(out: Path, stamps, poses, vg, row: dict) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    stamps, scans, odom = load_scans(args.log, args.frames)
-    fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps)
+    stamps, scans, odom, mount = load_scans(args.log, args.frames)
+    fe = odom if args.wheels else poses_at(args.run / "odometry.tum", stamps, mount)
     cfg = VisitGraphConfig(**parse_sets(args.set))
     t = time.process_time()
     poses, vg = run_visit_graph(fe, scans, cfg)
@@ -182,7 +190,7 @@ def main(argv: list[str] | None = None) -> None:
     row["visit_graph"]["offsets"] = offsets(poses)
     row["front_end"]["offsets"] = offsets(fe)
     if not args.skip_run_walls and (args.run / "trajectory.tum").is_file():
-        run_poses = poses_at(args.run / "trajectory.tum", stamps)
+        run_poses = poses_at(args.run / "trajectory.tum", stamps, mount)
         row["run_trajectory"] = walls(run_poses, scans)
         row["run_trajectory"]["offsets"] = offsets(run_poses)
     add_window_floor(row, fe, scans)

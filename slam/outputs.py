@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -115,15 +116,25 @@ def keyframe_cloud_mb(system: SlamSystem) -> float:
     return sum(kf.cloud.nbytes for kf in system.state.keyframes) / 2**20
 
 
-def write_trajectories(system: SlamSystem, out: Path) -> list[Path]:
+def write_trajectories(
+    system: SlamSystem,
+    out: Path,
+    to_output: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+) -> list[Path]:
+    """trajectory.tum / .kitti and odometry.tum. ``to_output(stamps, poses)``: the input's
+    convention for the files (a CARMEN log: the robot's poses at the log's own stamps,
+    ``CarmenSource.output_trajectory``); None: the run's stamps and sensor poses."""
     st = system.state
     if st.frames == 0:
         return []
     stamps = np.asarray(st.stamps)
-    traj = st.trajectory()
+    traj, odom = st.trajectory(), np.stack(st.odom_poses)
+    if to_output is not None:
+        _, odom = to_output(stamps, odom)
+        stamps, traj = to_output(stamps, traj)
     write_tum(out / TRAJECTORY_TUM, stamps, traj)
     write_kitti(out / TRAJECTORY_KITTI, traj)
-    write_tum(out / ODOMETRY_TUM, stamps, np.stack(st.odom_poses))
+    write_tum(out / ODOMETRY_TUM, stamps, odom)
     return [out / TRAJECTORY_TUM, out / TRAJECTORY_KITTI, out / ODOMETRY_TUM]
 
 
@@ -191,15 +202,17 @@ def write_outputs(
     *,
     resolved_config: dict[str, Any],
     extra_metrics: dict[str, Any] | None = None,
+    to_output: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> dict[str, Path]:
-    """Write every output of a run; each file is attempted even if another fails."""
+    """Write every output of a run; each file is attempted even if another fails.
+    ``to_output``: see :func:`write_trajectories`."""
     import yaml
 
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
     (out / CONFIG_YAML).write_text(yaml.safe_dump(resolved_config, sort_keys=False))
     written["config"] = out / CONFIG_YAML
-    for path in write_trajectories(system, out):
+    for path in write_trajectories(system, out, to_output):
         written[path.name] = path
     st = system.state
     if system.config.output.write_map and st.keyframes:

@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Any
 from slam.errors import InputError
 
 if TYPE_CHECKING:  # imported lazily at run time: the CLI starts fast
+    import numpy as np
+
     from slam.io.stream import ScanStream
     from slam.observer import RunObserver
     from slam.system import SlamSystem
@@ -64,13 +66,20 @@ def _open_stream(bag: Path, source: Any, system: SlamSystem) -> tuple[ScanStream
 
 
 def _write_all(
-    system: SlamSystem, out: Path, resolved: dict[str, Any], extra: dict[str, Any]
+    system: SlamSystem,
+    out: Path,
+    resolved: dict[str, Any],
+    extra: dict[str, Any],
+    to_output: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> dict[str, Path]:
-    """Every output of a run (``slam.outputs``), and a 2D run's map_server files."""
+    """Every output of a run (``slam.outputs``), and a 2D run's map_server files;
+    ``to_output``: the input's convention for the trajectory files (``output_trajectory``)."""
     from slam.io.grid_map import write_region_map
     from slam.outputs import write_outputs
 
-    written = write_outputs(system, out, resolved_config=resolved, extra_metrics=extra)
+    written = write_outputs(
+        system, out, resolved_config=resolved, extra_metrics=extra, to_output=to_output
+    )
     for path in write_region_map(system, out):
         written[path.stem + path.suffix] = path
     return written
@@ -125,7 +134,8 @@ def run_one(
         bar.close()
     notes = list(getattr(source, "notes", []))
     extra = {"input": str(bag), "topic": getattr(source, "topic", None), "input_notes": notes}
-    written = _write_all(system, out, resolved, {**extra, "warmup_seconds": warmup_seconds})
+    extra = {**extra, "warmup_seconds": warmup_seconds}
+    written = _write_all(system, out, resolved, extra, getattr(source, "output_trajectory", None))
     summary: dict[str, Any] = {
         "out": out,
         "frames": state.frames,

@@ -10,6 +10,7 @@ from slam.cli import main
 from slam.eval.relations import (
     read_relations,
     relation_errors,
+    relations_in_frame,
     relations_of,
     write_relations,
 )
@@ -91,3 +92,17 @@ def test_bad_input_says_what_is_wrong(office, tmp_path, capsys):
     far.write_text("5.0 6.0 0 0 0 0 0 0\n")
     assert main(["eval", str(gt), "--relations", str(far)]) == 2
     assert "matches a stamp" in capsys.readouterr().err
+
+
+def test_relations_move_from_the_sensor_to_the_body(office):
+    """Relations between sensor poses, moved by the mount, are the body's relations: the
+    body's trajectory scores 0 on them and 13.9 cm (mean) on the sensor's own."""
+    _, _, stamps, body, i, j = office
+    mount = _planar(0.3, 0.1, 0.2)  # T_body_sensor
+    sensor = body @ mount
+    on_sensor = relations_of(stamps, sensor, i, j)
+    moved = relations_in_frame(on_sensor, mount)
+    assert relation_errors(stamps, body, moved).trans.max() < 1e-9
+    np.testing.assert_array_equal(moved.t1, on_sensor.t1)
+    wrong = relation_errors(stamps, body, on_sensor).trans
+    assert wrong.mean() == pytest.approx(0.1394, abs=1e-3)

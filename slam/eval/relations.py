@@ -107,6 +107,13 @@ def relations_of(stamps: np.ndarray, poses: np.ndarray, i: np.ndarray, j: np.nda
     return Relations(np.asarray(stamps)[i].copy(), np.asarray(stamps)[j].copy(), rel)
 
 
+def relations_in_frame(rel: Relations, T_body_sensor: np.ndarray) -> Relations:
+    """Relations between sensor poses as relations between the poses of the body it is
+    mounted on (4x4 ``T_body_sensor``): T_b1_b2 = T_body_sensor T_s1_s2 T_body_sensor^-1."""
+    M = np.asarray(T_body_sensor, dtype=np.float64)
+    return Relations(rel.t1.copy(), rel.t2.copy(), M @ rel.poses @ np.linalg.inv(M))
+
+
 def match_stamps(stamps: np.ndarray, query: np.ndarray, max_dt: float) -> np.ndarray:
     """Index of the nearest of the sorted ``stamps`` for each ``query``; -1 beyond ``max_dt``."""
     stamps = np.asarray(stamps, dtype=np.float64)
@@ -158,6 +165,7 @@ __all__ = [
     "match_stamps",
     "read_relations",
     "relation_errors",
+    "relations_in_frame",
     "relations_of",
     "write_relations",
 ]
