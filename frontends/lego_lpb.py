@@ -78,8 +78,8 @@ class MapSection(IncrementalMapConfig):
 
 
 def _lpb_registration() -> TwoStepConfig:
-    # a cycle of pairs is convergence (``TwoStepConfig.cycle_tolerance``): a motorway start
-    # at 9 m/s rejected 2 of its first 5 frames without it, nuScenes keyframes 91 -> 83 cm
+    # with the ground as a plane a cycle of pairs is convergence (``cycle_tolerance``): a
+    # motorway start at 9 m/s rejected 2 of its first 5 frames without it
     return TwoStepConfig(ground_weight=0.2, cycle_tolerance=0.002)
 
 

@@ -66,12 +66,12 @@ class TwoStepConfig:
     noise_floor: float = 0.02
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
-    # the 6-DoF refinement stops as converged when its pose comes back within this many m
-    # (and rad) of one 2-4 iterations before, having gone 2.5x as far in between: a cycle
-    # of pairs along a weak direction (a motorway's length: LeGO-LOAM-LPB cycled 1 cm along
-    # it for 20 iterations, and the start's unconverged frames were rejected); 0 = off,
-    # LeGO-LOAM's (on, its nuScenes keyframes went 138 -> 296 cm: which frames converge
-    # decides that chaotic run)
+    # with the ground as a plane (``ground_normal``) the 6-DoF refinement stops as converged
+    # when its pose comes back within this many m (and rad) of one 2-4 iterations before,
+    # having gone 2.5x as far in between: freed from the rings, a motorway's length is
+    # weakly held and the pairs cycle along it (LeGO-LOAM-LPB: 1 cm for 20 iterations, and
+    # the start's unconverged frames were rejected); 0 = off, LeGO-LOAM's (its motorway
+    # start did not cycle; on without the plane its nuScenes keyframes went 138 -> 296 cm)
     cycle_tolerance: float = 0.0
     # LOAM's solution remapping: translation directions with less than this fraction of the
     # best direction's information keep the prediction; 0 = off
@@ -457,6 +457,7 @@ def _refine(
     cfg: TwoStepConfig,
     cache: NeighbourCache | None = None,
     fixed: FixedNormals | None = None,
+    cycle_tolerance: float = 0.0,
 ) -> RegistrationResult:
     """The 6-DoF refinement from T: E = E_edge + E_plane (+ E_ground when ``ground_plane`` is
     given), the energy of 3.3, by ``solve_weighted``."""
@@ -479,7 +480,7 @@ def _refine(
         transformation_epsilon=cfg.transformation_epsilon,
         fitness_epsilon=cfg.fitness_epsilon,
         residual_dims=1,
-        cycle_tolerance=cfg.cycle_tolerance,
+        cycle_tolerance=cycle_tolerance,
     )
 
 
@@ -536,7 +537,10 @@ def two_step_align(
     if cfg.two_step and cfg.step_iterations > 0:
         T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache, fixed)
     surf = np.concatenate([ground, planes])
-    res = _refine(T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed)
+    cycle = cfg.cycle_tolerance if ground_normal is not None else 0.0
+    res = _refine(
+        T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed, cycle
+    )
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
     return res
