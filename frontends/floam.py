@@ -15,7 +15,12 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.registration.feature_icp import FeatureIcpConfig, MapTreeCache, feature_icp_align
-from slam.registration.ground_plane import GroundPlaneConfig, on_ground, scan_ground
+from slam.registration.ground_plane import (
+    FixedNormals,
+    GroundPlaneConfig,
+    on_ground,
+    scan_ground,
+)
 from slam.types import Scan
 
 
@@ -125,7 +130,7 @@ class Floam(ScanToMapFrontend):
             rc = cfg.registration
             ground = None
             if plane is not None:
-                ground = (on_ground(p_reg, plane, cfg.ground.band), plane[0])
+                ground = FixedNormals(on_ground(p_reg, plane, cfg.ground.band), plane[0])
             T0 = T_pred
             if wide:  # tracking lost: coarse pass from the prediction with a wider search
                 f = cfg.recovery_correspondence_factor

@@ -26,13 +26,13 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
-from slam.registration.ground_plane import GroundPlaneConfig, on_ground, scan_ground
-from slam.registration.two_step import (
+from slam.registration.ground_plane import (
     FixedNormals,
-    TwoStepConfig,
-    two_step_align,
-    weak_translation,
+    GroundPlaneConfig,
+    on_ground,
+    scan_ground,
 )
+from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
 from slam.types import Scan
 
 

@@ -12,12 +12,13 @@ from slam.registration.covariances import estimate_covariances
 from slam.registration.feature_icp import FeatureIcpConfig, FeatureTarget, feature_icp_align
 from slam.registration.gicp import GicpConfig, gicp_align
 from slam.registration.ground_plane import (
+    FixedNormals,
     GroundPlaneConfig,
     fit_ground,
     flatten_ground,
     on_ground,
 )
-from slam.registration.two_step import FixedNormals, TwoStepConfig, plane_terms
+from slam.registration.two_step import TwoStepConfig, plane_terms
 
 HEIGHT = 1.8  # m: the sensor above the ground
 
@@ -134,7 +135,7 @@ def test_loam_plane_terms_on_the_plane_do_not_hold_a_moving_scan():
         if ground:
             plane = fit_ground(planes_s, GroundPlaneConfig())
             assert plane is not None
-            g = (on_ground(planes_s, plane, 0.1), plane[0])
+            g = FixedNormals(on_ground(planes_s, plane, 0.1), plane[0])
         res = feature_icp_align(edges_s, planes_s, e_map, p_map, np.eye(4), cfg, g)
         return float(res.T_target_source[0, 3])
 

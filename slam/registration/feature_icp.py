@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.errors import ConfigError
+from slam.registration.ground_plane import FixedNormals
 from slam.registration.neighbours import KnnTree, _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
 from slam.registration.se3 import transform
@@ -152,19 +153,16 @@ def _plane_terms(
     moved: np.ndarray,
     nh,
     cfg: FeatureIcpConfig,
-    ground: tuple[np.ndarray, np.ndarray] | None = None,
+    ground: FixedNormals | None = None,
+    R: np.ndarray | None = None,
 ) -> Terms:
     """Point-to-plane terms of the plane points whose map neighbours all lie within
     plane_threshold (m) of their plane: W = n n^T, residual |n . (p - c)| (m). ``ground``:
-    (mask (N,), normal n (3,) in the map frame at the current pose) of the points on the
-    scan's ground, whose plane normal is n."""
+    the points on the scan's ground, whose plane normal (rotated by the pose's R) is its."""
     ok, c, w, V, centred = nh
     n = V[:, :, 0]
     if ground is not None:
-        g = ground[0][ok]
-        if g.any():
-            n = n.copy()
-            n[g] = ground[1]
+        n = ground.applied(n, ok, R)
     flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
     n = n[flat]
     r = np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n))
@@ -178,16 +176,16 @@ def feature_icp_align(
     plane_map: FeatureTarget | None,
     init_T: np.ndarray | None = None,
     cfg: FeatureIcpConfig | None = None,
-    ground: tuple[np.ndarray, np.ndarray] | None = None,
+    ground: FixedNormals | None = None,
 ) -> RegistrationResult:
     """Align scan edge/plane points to the edge/plane maps; returns T_map_scan and H.
-    ``ground``: (mask (N_planes,) bool, unit normal (3,) in the sensor frame) of the plane
-    points on the scan's ground plane, which constrain along that normal only."""
+    ``ground``: the plane points on the scan's ground plane, which constrain along its
+    normal only."""
     cfg = cfg or FeatureIcpConfig()
     edges = _check_points(edge_xyz, "edge points")
     planes = _check_points(plane_xyz, "plane points")
-    if ground is not None and len(ground[0]) != len(planes):
-        raise ValueError(f"ground mask has {len(ground[0])} rows for {len(planes)} plane points")
+    if ground is not None and len(ground.rows) != len(planes):
+        raise ValueError(f"ground has {len(ground.rows)} rows for {len(planes)} plane points")
     if len(edges) + len(planes) < 6:
         raise RegistrationError(
             f"feature ICP needs at least 6 feature points, got {len(edges) + len(planes)}"
@@ -204,8 +202,7 @@ def feature_icp_align(
         moved = transform(T, planes)
         nh = plane_nh(moved)
         if nh is not None:
-            g = None if ground is None else (ground[0], T[:3, :3] @ ground[1])
-            terms.append(_plane_terms(planes, moved, nh, cfg, g))
+            terms.append(_plane_terms(planes, moved, nh, cfg, ground, T[:3, :3]))
         if not terms:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), None, np.zeros(0)
         ps, qs, Ws, rs = zip(*terms, strict=True)

@@ -49,6 +49,31 @@ class GroundPlaneConfig:
             raise ConfigError("ground: min_share in (0, 1], max_tilt_deg in (0, 90]")
 
 
+@dataclass
+class FixedNormals:
+    """Plane points whose normal is known: ``rows`` (N,) bool of a point set, ``normal`` (3,)
+    unit vector in the sensor frame (the scan's fitted ground: the map neighbours of a ground
+    point lie on one or two rings, whose fitted plane may stand across them and hold the scan
+    at the map's rings; docs/paper000.md and docs/paper001.md, "The ground's rings")."""
+
+    rows: np.ndarray
+    normal: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.rows = np.asarray(self.rows, dtype=bool)
+        self.normal = np.asarray(self.normal, dtype=np.float64)
+
+    def applied(self, n: np.ndarray, ok: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """The fitted normals ``n`` (M, 3, map frame) of the rows ``ok`` (N,) bool, with the
+        known normal (rotated into the map by R) on the fixed rows among them."""
+        g = self.rows[ok]
+        if not g.any():
+            return n
+        n = n.copy()
+        n[g] = R @ self.normal
+        return n
+
+
 def fit_ground(xyz: np.ndarray, cfg: GroundPlaneConfig) -> tuple[np.ndarray, float] | None:
     """The ground plane (unit normal n with n_z > 0, d; n.p + d = 0 on it, sensor frame, m)
     of a scan ``xyz`` (N, 3), or None when no low band holds ``min_share`` of the points

@@ -28,6 +28,7 @@ import numpy as np
 from slam.deskew import se3_log
 from slam.errors import ConfigError
 from slam.registration.feature_icp import FeatureTarget
+from slam.registration.ground_plane import FixedNormals
 from slam.registration.neighbours import _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
 from slam.registration.se3 import se3_exp, skew, transform
@@ -119,21 +120,6 @@ class Terms:
         return cls(
             *(np.concatenate([getattr(t, f) for t in parts]) for f in ("p", "c", "W", "w", "sqd"))
         )
-
-
-@dataclass
-class FixedNormals:
-    """Plane points whose normal is known: ``rows`` (N,) bool of a point set, ``normal`` (3,)
-    unit vector in the sensor frame (the scan's fitted ground: the map neighbours of a ground
-    point lie on one or two rings, whose fitted plane may stand across them and hold the scan
-    at the map's rings; docs/paper001.md, "The ground's rings")."""
-
-    rows: np.ndarray
-    normal: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.rows = np.asarray(self.rows, dtype=bool)
-        self.normal = np.asarray(self.normal, dtype=np.float64)
 
 
 def _scaled(t: Terms, floor: float) -> Terms:
@@ -291,10 +277,7 @@ def plane_terms(
     flat = np.max(np.abs(np.einsum("nki,ni->nk", centred, n)), axis=1) < cfg.plane_threshold
     flat &= w[:, 1] > cfg.plane_min_spread**2
     if fixed is not None:
-        g = fixed.rows[ok]
-        if g.any():
-            n = n.copy()
-            n[g] = T[:3, :3] @ fixed.normal
+        n = fixed.applied(n, ok, T[:3, :3])
     n = n[flat]
     r = np.abs(np.einsum("ni,ni->n", moved[ok][flat] - c[flat], n))
     t = Terms(
