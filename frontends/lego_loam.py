@@ -225,12 +225,14 @@ class LegoLoam(ScanToMapFrontend):
         est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]))
         if len(self.edge_map) + len(self.plane_map) >= 10:
             reg = self._registered(f)
-            plane = scan_ground(scan.xyz, self._ring(scan), self.cfg.ground_plane)
+            rings = self._ring(scan)
+            plane = scan_ground(scan.xyz, rings, self.cfg.ground_plane)
             fixed = None
             if plane is not None:
                 rows = on_ground(reg.ground, plane, self.cfg.ground_plane.band)
                 fixed = FixedNormals(rows, plane[0])
-            est.result = self._align(reg, T_pred, wide, self._iterations(scan), fixed)
+            beams = int(rings.max()) + 1 if len(rings) else 0
+            est.result = self._align(reg, T_pred, wide, self._iterations(scan), fixed, beams)
             est.pose = est.result.T_target_source
             rc = self.cfg.registration
             if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
@@ -263,13 +265,17 @@ class LegoLoam(ScanToMapFrontend):
         wide: bool,
         iterations: int,
         fixed: FixedNormals | None = None,
+        beams: int = 0,
     ):
         """Two-step LM and 6-DoF refinement against the maps from ``T_pred`` (a coarse pass
         with a wider search first when ``wide``), at most ``iterations`` LM iterations;
-        ``fixed``: the ground points on the scan's ground plane and its normal."""
+        ``fixed``: the ground points on the scan's ground plane and its normal; ``beams``:
+        the sensor's (the cut of what moved needs ``outlier_min_beams``)."""
         cfg = self.cfg
         e_map, p_map = self._targets()
         rc = replace(cfg.registration, max_iterations=iterations)
+        if beams < rc.outlier_min_beams:
+            rc = replace(rc, outlier_sigmas=0.0)
         plane = self._ground_plane_odom()
         g_res = self._ground_residual_points()
         T0 = T_pred
@@ -282,11 +288,13 @@ class LegoLoam(ScanToMapFrontend):
             )
             T0 = two_step_align(
                 f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane,
-                ground_residual_xyz=g_res, ground_normal=fixed,
+                ground_residual_xyz=g_res, ground_normal=fixed, settle=True,
             ).T_target_source  # fmt: skip
+        # a start that is not the tracked prediction (first motion, lost) settles first
         return two_step_align(
             f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane,
             ground_residual_xyz=g_res, ground_normal=fixed,
+            settle=self.tracked_horizon is None,
         )  # fmt: skip
 
     def _map_size(self) -> int:

@@ -65,6 +65,13 @@ class TwoStepConfig:
     # each residual class (edges, planes, ground) weighs (noise_floor / sigma)^2, sigma =
     # 1.4826 x its median residual (>= noise_floor), at every association; 0 = equal weights
     noise_floor: float = 0.02
+    # edge / plane residuals above this many robust sigmas of their class weigh 0 at each
+    # association: what moved since the map saw it (LeGO-LOAM removes no moving objects;
+    # trucks passing a motorway start pulled it 0.9 m); 0 = Huber alone. Only for sensors
+    # of ``outlier_min_beams`` or more: along the 16-beam building's plain corridors the
+    # few terms that hold the pose along them were cut (S route 6.0 -> 12.7 m)
+    outlier_sigmas: float = 3.0
+    outlier_min_beams: int = 24
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
     # with the ground as a plane (``ground_normal``) the 6-DoF refinement stops as converged
@@ -92,6 +99,8 @@ class TwoStepConfig:
             )
         if self.ground_weight < 0:
             raise ConfigError(f"two_step ground_weight must be >= 0, got {self.ground_weight}")
+        if self.outlier_sigmas < 0 or self.outlier_min_beams < 0:
+            raise ConfigError("two_step outlier_sigmas and outlier_min_beams must be >= 0")
         if not 0.0 <= self.degenerate_ratio < 1.0:
             raise ConfigError("two_step degenerate_ratio must be in [0, 1)")
 
@@ -122,12 +131,17 @@ class Terms:
         )
 
 
-def _scaled(t: Terms, floor: float) -> Terms:
-    """Terms with their weights scaled by (floor / sigma)^2 of their robust residual scale."""
-    if floor <= 0 or len(t.sqd) == 0:
+def _scaled(t: Terms, floor: float, cut: float = 0.0) -> Terms:
+    """Terms with their weights scaled by (floor / sigma)^2 of their robust residual scale
+    sigma = 1.4826 x median residual (>= floor); ``cut`` > 0: residuals above cut x sigma
+    weigh 0 (points on what moved since the map saw it)."""
+    if (floor <= 0 and cut <= 0) or len(t.sqd) == 0:
         return t
-    sigma = max(1.4826 * float(np.sqrt(np.median(t.sqd))), floor)
-    t.w = t.w * (floor / sigma) ** 2
+    sigma = max(1.4826 * float(np.sqrt(np.median(t.sqd))), floor, 1e-3)
+    if floor > 0:
+        t.w = t.w * (floor / sigma) ** 2
+    if cut > 0:
+        t.w = np.where(t.sqd > (cut * sigma) ** 2, 0.0, t.w)
     return t
 
 
@@ -251,7 +265,9 @@ def edge_terms(
     e = np.einsum("nij,nj->ni", P, moved[ok][line] - c[line])
     r = np.linalg.norm(e, axis=1)
     return _scaled(
-        Terms(pts[ok][line], c[line], P, _huber(r, cfg.huber_delta), r**2), cfg.noise_floor
+        Terms(pts[ok][line], c[line], P, _huber(r, cfg.huber_delta), r**2),
+        cfg.noise_floor,
+        cfg.outlier_sigmas,
     )
 
 
@@ -283,7 +299,7 @@ def plane_terms(
     t = Terms(
         pts[ok][flat], c[flat], n[:, :, None] * n[:, None, :], _huber(r, cfg.huber_delta), r**2
     )
-    return _scaled(t, cfg.noise_floor)
+    return _scaled(t, cfg.noise_floor, cfg.outlier_sigmas)
 
 
 def ground_terms(
@@ -479,6 +495,7 @@ def two_step_align(
     *,
     ground_residual_xyz: np.ndarray | None = None,
     ground_normal: FixedNormals | None = None,
+    settle: bool = False,
 ) -> RegistrationResult:
     """Align a scan's features to the edge/plane maps: [roll, pitch, z] from the ground
     points, [yaw, x, y] from the edges, then a 6-DoF refinement on edges + planes (+ ground
@@ -489,6 +506,9 @@ def two_step_align(
     that the chained frame-to-frame constraint has no bias from kerbs or wall feet.
     ``ground_normal``: the ground points (rows of ``ground_xyz``) on the scan's fitted
     ground plane and its normal, which their point-to-plane terms use.
+    ``settle``: with ``cfg.outlier_sigmas`` > 0, solve with Huber alone first and cut from
+    the pose it settles on (a start that is not a tracked prediction: from far off, the
+    terms that would pull the pose there are what the cut removes).
     Returns T_map_scan with the Hessian of the final step (``solve_weighted``); with
     ``cfg.degenerate_ratio`` > 0 its weak translation directions keep ``init_T``
     (``remapped``)."""
@@ -517,6 +537,9 @@ def two_step_align(
         fixed = ground_normal
         rows = np.concatenate([fixed.rows, np.zeros(len(planes), dtype=bool)])
         surf_fixed = FixedNormals(rows, fixed.normal)
+    cut = cfg.outlier_sigmas
+    if settle:
+        cfg = replace(cfg, outlier_sigmas=0.0)
     if cfg.two_step and cfg.step_iterations > 0:
         T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache, fixed)
     surf = np.concatenate([ground, planes])
@@ -524,6 +547,11 @@ def two_step_align(
     res = _refine(
         T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed, cycle
     )
+    if settle and cut > 0:
+        res = _refine(
+            res.T_target_source, edges, surf, g_res, edge_map, plane_map, gp, n_src,
+            replace(cfg, outlier_sigmas=cut), cache, surf_fixed, cycle,
+        )  # fmt: skip
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
     return res
