@@ -23,9 +23,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+from bench_2d_real import load_log
+from visit_graph_replay import parse_sets, poses_at
 
-from benchmarks.bench_2d_real import load_log
-from benchmarks.visit_graph_replay import parse_sets, poses_at
 from slam.eval.relations import match_stamps, read_relations, relation_errors, relations_in_frame
 from slam.mapping.grid2d import compose2d, inverse2d, matrix_to_pose2, pose2_to_matrix, wrap
 from slam.visit_graph import VisitGraphConfig, run_visit_graph, vertex_scans

@@ -19,6 +19,7 @@ from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
+from bench_2d_real import load_log
 
 from slam.eval.map2d import (
     fuse_scans,
@@ -28,7 +29,6 @@ from slam.eval.map2d import (
     windowed_floor,
 )
 from slam.eval.metrics import evaluate, evaluate_arrays, read_trajectory
-from slam.io.carmen import CarmenSource
 from slam.mapping.grid2d import compose2d, matrix_to_pose2, pose2_to_matrix
 from slam.visit_graph import (
     VisitGraphConfig,
@@ -41,20 +41,9 @@ from slam.visit_refine import offset_stats, visit_offsets
 def load_scans(
     log: Path, frames: int | None
 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
-    """stamps (the log's own, as the trajectory files carry them), scans (N, 2) within
-    0.05-30 m (the laser's frame), wheel odometry (K, 3) of a CARMEN log, and the laser's
-    mount on the robot (x, y, theta)."""
-    stamps, scans, odom = [], [], []
-    source = CarmenSource(log)
-    for n, scan in enumerate(source):
-        if frames is not None and n >= frames:
-            break
-        xy = np.asarray(scan.xyz[:, :2], dtype=np.float64)
-        r = np.linalg.norm(xy, axis=1)
-        scans.append(xy[(r > 0.05) & (r < 30.0)])
-        stamps.append(float(scan.stamp))
-        odom.append(np.asarray(scan.odom, dtype=np.float64))
-    return source.output_stamps(np.array(stamps)), scans, np.array(odom), source.mount
+    """``bench_2d_real.load_log`` with the laser's mount on the robot as (x, y, theta)."""
+    stamps, scans, odom, mount = load_log(log, frames)
+    return stamps, scans, odom, matrix_to_pose2(mount)
 
 
 def poses_at(path: Path, stamps: np.ndarray, mount: np.ndarray | None = None) -> np.ndarray:
