@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.bench.degrade import thin_carmen
+from slam.bench.degrade import skew_carmen_odometry, thin_carmen
 from slam.config import load_config
 from slam.eval.metrics import read_trajectory
 from slam.eval.relations import (
@@ -144,6 +144,12 @@ def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> l
     base = Path(args.out)
     if args.beam_stride > 1:  # the older 1 deg scanners, from a 0.5 deg log
         path = thin_carmen(path, base / "logs" / path.name, args.beam_stride)
+    run_path = path  # the relations come from the log's own wheels, the runs from `run_path`
+    if args.odom_skew:
+        yaw, trans, noise = (float(v) for v in args.odom_skew.split(","))
+        run_path = skew_carmen_odometry(
+            path, base / "logs" / f"skewed_{path.name}", yaw, trans, noise, seed=0
+        )
     rel, info = log_relations(path, args.frames, base)
     print(f"{log}: {info['kept']} self relations of {info['pairs']} pairs ({info['rejected']})")
     sets = {"published": published[log]} if log in published else {}
@@ -151,7 +157,7 @@ def rows_of(log: str, args: argparse.Namespace, published: dict[str, Path]) -> l
     runs = []
     for method in args.methods:
         run_dir = base / log / method
-        bench = run_method(method, path, run_dir, args.frames, args.set or [])
+        bench = run_method(method, run_path, run_dir, args.frames, args.set or [])
         if method.startswith("dpcr2d") and not any(r[0] == "dpcr2d front end" for r in runs):
             runs.append(("dpcr2d front end", run_dir / "odometry.tum", bench))
         runs.append((method, run_dir / "trajectory.tum", bench))
@@ -192,6 +198,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", action="append", help="config override for every method")
     ap.add_argument(
         "--beam-stride", type=int, default=1, help="keep every N-th beam (2: 1 deg scanners)"
+    )
+    ap.add_argument(
+        "--odom-skew",
+        help="YAW_SCALE,TRANS_SCALE,YAW_NOISE_DEG: the runs read a worse wheel odometry "
+        "(e.g. 0.05,0.03,0.2; the relations keep the log's own)",
     )
     args = ap.parse_args(argv)
     published = {k: Path(v) for k, v in (item.split("=", 1) for item in args.relations)}

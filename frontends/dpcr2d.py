@@ -102,6 +102,8 @@ class Dpcr2d:
         self.feedback = np.zeros(3)
         self.kf_id = -1
         self.kf_map: list[np.ndarray] = []
+        self._kf_path: list[float] = []  # path length (m) at each keyframe
+        self._anchors_taken = False  # a factor plugin turns re-anchors into loop edges
         self._hooked = False  # the pipeline calls on_graph_update (re-anchors are loops)
         self._moved_since_kf = np.zeros(3)  # map-frame moves of on_graph_update since then
         self.visit: OccupancyGrid | None = None  # the scans since the last keyframe
@@ -149,6 +151,11 @@ class Dpcr2d:
                 drawn = self.kf_map[region.owner]
                 out[region_id] = compose2d(matrix_to_pose2(T), inverse2d(drawn))
         return out
+
+    def on_factor_plugins(self, plugins: list) -> None:
+        """The run's factor plugins: re-anchors are visit-graph loop edges only when one
+        takes them (``region_edges``); without it (``--no-loop``) the odometry jumps."""
+        self._anchors_taken = any(getattr(p, "takes_anchors", False) for p in plugins)
 
     def on_graph_update(self, view) -> None:
         """After a region-graph optimisation (``cfg.graph_feedback``): move the robot, the
@@ -368,6 +375,7 @@ class Dpcr2d:
                       reanchor_deg=float(np.degrees(res_pose[2])),
                       reanchor_jump_m=float(np.linalg.norm(local[:2])))  # fmt: skip
         self._move(res_pose)
+        old_kf = self._anchor_keyframe() if self.cfg.visit_scans > 0 else None
         if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
             # a loop, not odometry: the reported pose does not jump; the keyframe of this
             # frame carries the match as a constraint on the nearest map's keyframe
@@ -375,11 +383,29 @@ class Dpcr2d:
             placed = compose2d(maps[0].offset, self.kf_map[maps[0].owner])
             z = compose2d(inverse2d(placed), self.pose)
             self._anchor = RegionAnchor(maps[0].owner, (float(z[0]), float(z[1]), float(z[2])))
+        elif old_kf is not None:  # the visit graph's loop edge (visit_anchor_edges)
+            self.feedback = compose2d(res_pose, self.feedback)
+            z = compose2d(inverse2d(self.kf_map[old_kf]), self.pose)
+            self._anchor = RegionAnchor(old_kf, (float(z[0]), float(z[1]), float(z[2])))
         else:  # the reported pose jumps: the visit's recent scans shared the drift it removes
             moved = compose2d(compose2d(inverse2d(self.feedback), res_pose), self.feedback)
             self._recent = deque(((p, compose2d(moved, q)) for p, q in self._recent),
                                  maxlen=self._recent.maxlen)  # fmt: skip
         return True
+
+    def _anchor_keyframe(self) -> int | None:
+        """The keyframe a re-anchor is measured from (``visit_anchor_edges``): the one made
+        ``revisit_path`` m of path or more ago whose map pose lies nearest the robot's
+        corrected pose, within ``revisit_radius``; None without one."""
+        cfg = self.cfg
+        if not cfg.visit_anchor_edges or not self._anchors_taken or not self.kf_map:
+            return None
+        old = np.flatnonzero(self.path - np.asarray(self._kf_path) >= cfg.revisit_path)
+        if not len(old):
+            return None
+        dist = np.linalg.norm(np.asarray(self.kf_map)[old, :2] - self.pose[:2], axis=1)
+        k = int(np.argmin(dist))
+        return int(old[k]) if dist[k] <= cfg.revisit_radius else None
 
     def _visit_clouds(self) -> bool:
         return self.cfg.visit_clouds and self.cfg.graph_feedback and self._hooked
@@ -554,8 +580,8 @@ class Dpcr2d:
                 entered = region != left
         self.region = region
         if cfg.visit_scans > 0:  # a re-anchor's jump ends the visit: no cloud spans it
-            jumped = reanchored and self._anchor is None
-            is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0 or jumped
+            # an anchored one ends it too: its keyframe carries the loop edge
+            is_kf = self.frame == 0 or (self.frame + 1) % cfg.visit_scans == 0 or reanchored
         else:
             is_kf = self.frame == 0 or entered or self._anchor is not None
         if is_kf:
@@ -627,6 +653,7 @@ class Dpcr2d:
         if is_kf:
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
+            self._kf_path.append(self.path)
             self._poor_var = np.zeros(2)
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))

@@ -76,7 +76,14 @@ class Dpcr2dConfig:
     keyframe before and the ``visit_pad`` before those, drawn at this front end's own
     poses (measurement only, never a map the graph moved), for the region-edges plugin's
     visit loop search; ``visit_grid`` fuses these clouds at the optimised keyframe poses
-    (``map.pgm``). Needs graph_feedback off.
+    (``map.pgm``). Needs graph_feedback off. visit_anchor_edges (with visit_scans): a
+    re-anchor is a loop edge of the visit graph instead of a jump of the odometry: its
+    frame is a keyframe whose pose on the old map is measured in the frame of the nearest
+    keyframe made ``revisit_path`` m of path or more before (``RegionTag.anchor``;
+    Gaussian, never gated: the wide search vouched for it), and the graph spreads the
+    correction over the stretch that drifted. Without an old keyframe within
+    ``revisit_radius``, or without a factor plugin that takes the edge (``--no-loop``), the
+    odometry jumps as before.
 
     wheel_check_m / wheel_check_deg (0: off): a first registration that lands farther
     than this from the wheel-odometry prediction must fit the submap better than PLICP
@@ -189,6 +196,7 @@ class Dpcr2dConfig:
     reanchor_loops: bool = True
     visit_scans: int = 0
     visit_pad: int = 15
+    visit_anchor_edges: bool = False
     wheel_check_m: float = 0.1
     wheel_check_deg: float = 4.0
     wheel_check_distance: float = 0.15

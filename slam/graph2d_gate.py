@@ -59,6 +59,13 @@ def is_loop(factor) -> bool:
     return abs(int(b) - int(a)) != 1
 
 
+def is_gated(factor) -> bool:
+    """A loop edge under a robust kernel: the gate may switch it off. A loop edge its plugin
+    gives without one (a front end's own re-anchor on its map, ``region_edges``) is vouched
+    for and stays."""
+    return is_loop(factor) and isinstance(factor.noiseModel(), gtsam.noiseModel.Robust)
+
+
 def residual_sigmas(factors: Sequence, values: gtsam.Values) -> np.ndarray:
     """Mahalanobis norm of each between factor's error under its claimed (non-robust)
     noise at ``values``; NaN for other factors or missing keys."""
@@ -80,7 +87,7 @@ def optimize_gated(
     """Optimise ``factors`` from ``start`` with ``optimize``; loop edges beyond
     ``gate_sigma`` at the result are switched off and the rest re-optimised (module
     docstring). ``gate_sigma`` <= 0: no gate (one optimisation)."""
-    loop = np.array([is_loop(f) for f in factors], dtype=bool)
+    loop = np.array([is_gated(f) for f in factors], dtype=bool)
     off = np.zeros(len(factors), dtype=bool)
     values, done = start, 0
     while True:

@@ -116,6 +116,7 @@ class RegionEdgePlugin:
 
     Config = RegionEdgeConfig
     is_loop = True
+    takes_anchors = True  # a front end's re-anchors (``RegionTag.anchor``) become edges
 
     def __init__(self, config: RegionEdgeConfig | None = None):
         self.config = config or RegionEdgeConfig()
@@ -154,8 +155,8 @@ class RegionEdgePlugin:
             step = float(np.linalg.norm(np.asarray(kf.relative)[:2, 3]))
             self._path.append(self._path[-1] + step)
         tag = kf.region or RegionTag()
-        if tag.visit:
-            return self._visit(kf, graph)
+        if tag.visit:  # a re-anchored visit also carries its front end's loop edge
+            return self._anchor(kf, robust=False) + self._visit(kf, graph)
         anchors = self._anchor(kf)
         region = tag.left
         cloud = graph.cloud(kf.id)
@@ -246,9 +247,11 @@ class RegionEdgePlugin:
             for j, i, z in edges
         ]
 
-    def _anchor(self, kf: Keyframe) -> list[gtsam.BetweenFactorPose3]:
+    def _anchor(self, kf: Keyframe, robust: bool = True) -> list[gtsam.BetweenFactorPose3]:
         """The edge of a front-end re-anchor (``dpcr2d``: the submap matched, by the wide
-        search, on the old maps): keyframe ``anchor_kf`` -> this one."""
+        search, on the old maps): keyframe ``anchor_kf`` -> this one. ``robust`` False:
+        Gaussian, never switched off by the visit graph's gate (``slam.graph2d_gate``): the
+        front end moved onto that map already, the graph only places the correction."""
         cfg = self.config
         anchor = None if kf.region is None else kf.region.anchor
         if anchor is None or not 0 <= anchor.keyframe < kf.id:
@@ -256,8 +259,9 @@ class RegionEdgePlugin:
         j, z = anchor.keyframe, np.array(anchor.pose)
         s_t, s_r = cfg.anchor_sigma_m, np.radians(cfg.anchor_sigma_deg)
         info = np.diag([1e6, 1e6, 1.0 / s_r**2, 1.0 / s_t**2, 1.0 / s_t**2, 1e6])
-        noise = robust_noise(gtsam.noiseModel.Gaussian.Information(info), cfg.robust,
-                             cfg.robust_param)  # fmt: skip
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        if robust:
+            noise = robust_noise(noise, cfg.robust, cfg.robust_param)
         region = -1 if kf.region.region is None else kf.region.region
         self.events.append(RegionEdge(kf.id, j, region, -1, 1.0, 0.0, True, "ok (re-anchor)"))
         return [gtsam.BetweenFactorPose3(key(j), key(kf.id), pose3(pose2_to_matrix(z)), noise)]

@@ -73,6 +73,9 @@ class SlamSystem:
         self.factor_sources = (
             factor_sources if factor_sources is not None else build_factor_plugins(config.factors)
         )
+        hook = getattr(self.frontend, "on_factor_plugins", None)
+        if callable(hook):  # a front end whose own loop edges need a plugin to take them
+            hook([source.plugin for source in self.factor_sources])
         # optional: a front end that can start on the next scan early
         self._look_ahead = getattr(self.frontend, "look_ahead", None)
         self.state = RunState()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from slam.graph2d_gate import chain_values, disagreement, frontend_check, is_loop, optimize_gated
 
@@ -97,3 +98,20 @@ def test_front_end_kept_when_every_loop_edge_agrees_within_its_noise():
     check = frontend_check(drift, gate, sigma=3.0)
     assert not check.keep_frontend and check.max_sigma > 4.5
     assert abs(gate.values.atPose2(20).x() - 19.75) < 0.02
+
+
+def test_an_edge_without_a_robust_kernel_is_never_switched_off():
+    """A front end's re-anchor (Gaussian, ``region_edges`` on a visit keyframe): 0.5 m
+    against a chain of 2 cm steps is far beyond the gate, yet it stays and the chain bends
+    to it; the same edge under the Cauchy kernel is switched off."""
+    factors, start = _chain(sigma_m=0.02, sigma_rad=0.01)
+    z = (20.5, 0.0, 0.0)
+    gaussian = gtsam.BetweenFactorPose2(
+        0, 20, gtsam.Pose2(*z), gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, 0.02]))
+    )
+    kept = optimize_gated([*factors, gaussian], start, _lm, gate_sigma=4.0)
+    off = optimize_gated([*factors, _loop(0, 20, z)], start, _lm, gate_sigma=4.0)
+    assert not kept.off.any() and list(np.flatnonzero(off.off)) == [len(factors)]
+    # the chain takes its share by the information: 0.5 m x 20 (2 cm)^2 / (20 (2 cm)^2 + (5 cm)^2)
+    assert kept.values.atPose2(20).x() == pytest.approx(20.0 + 0.5 * 0.008 / 0.0105, abs=1e-3)
+    assert abs(off.values.atPose2(20).x() - 20.0) < 1e-6

@@ -113,3 +113,36 @@ def test_thinned_fr079_scans_as_a_one_degree_laser(tmp_path):
         assert np.abs(angles_b - np.round(angles_b)).max() < 1e-6
         kept = np.isin(np.round(angles_a * 2).astype(int), np.round(angles_b * 2).astype(int))
         assert np.allclose(a.xyz[kept], b.xyz)
+
+
+def test_skewed_wheels_scale_the_turns_and_keep_the_laser_mount(tmp_path):
+    """FR079's wheels with 5 % more turn and 3 % more distance per increment: the heading
+    turned over the first 300 scans is 1.05x the log's, the path 1.03x, the laser still
+    4 cm behind the robot (its mount) and the scans and stamps untouched."""
+    from slam.bench.degrade import skew_carmen_odometry
+    from slam.mapping.grid2d import compose2d, inverse2d
+
+    src = shared_path("laser2d", "fr079.clf.bz2")
+    same = skew_carmen_odometry(src, tmp_path / "same.clf.bz2")
+    skew = skew_carmen_odometry(src, tmp_path / "skew.clf.bz2", 0.05, 0.03)
+    full, a, b = _first(src, 300), _first(same, 300), _first(skew, 300)
+    for x, y in zip(full, a, strict=True):
+        d = compose2d(inverse2d(x.odom), y.odom)
+        assert y.stamp == x.stamp and np.allclose(d, 0.0, atol=1e-5)
+
+    def turned_and_path(scans):
+        o = np.array([s.odom for s in scans])
+        d = np.array([compose2d(inverse2d(p), q) for p, q in zip(o[:-1], o[1:], strict=True)])
+        return np.abs(np.arctan2(np.sin(d[:, 2]), np.cos(d[:, 2]))).sum(), np.hypot(
+            d[:, 0], d[:, 1]
+        ).sum()
+
+    (turn0, path0), (turn1, path1) = turned_and_path(full), turned_and_path(b)
+    assert turn0 > 1.0 and path0 > 10.0  # the log turns and moves here
+    assert turn1 / turn0 == pytest.approx(1.05, abs=1e-3)
+    assert path1 / path0 == pytest.approx(1.03, abs=1e-3)
+    for x, y in zip(full, b, strict=True):
+        assert np.array_equal(y.xyz, x.xyz) and y.stamp == x.stamp
+    src_mount, skew_mount = CarmenSource(src).mount, CarmenSource(skew).mount
+    assert np.allclose(skew_mount, src_mount, atol=1e-5)
+    assert src_mount[0] == pytest.approx(-0.04, abs=1e-3)

@@ -144,3 +144,54 @@ def thin_carmen(src: Path, dst: Path, stride: int) -> Path:
                 line = " ".join(["FLASER", str(len(kept)), *kept, *parts[2 + n :]]) + "\n"
             g.write(line)
     return dst
+
+
+def _compose2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
+
+
+def _between2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = b[:2] - a[:2]
+    dth = np.arctan2(np.sin(b[2] - a[2]), np.cos(b[2] - a[2]))
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], dth])
+
+
+def skew_carmen_odometry(
+    src: Path, dst: Path, yaw_scale: float = 0.0, trans_scale: float = 0.0,
+    yaw_noise_deg: float = 0.0, seed: int = 0,
+) -> Path:  # fmt: skip
+    """A copy of the CARMEN log ``src`` whose wheel odometry is worse: every ``FLASER``
+    increment's heading change is scaled by ``1 + yaw_scale`` plus ``yaw_noise_deg`` (deg per
+    scan, Gaussian; a heading that repeats exactly, a stalled reading, stays so), its
+    translation by ``1 + trans_scale`` (the miscalibrated wheel base and radius of an older
+    robot); the laser pose keeps its mount on the robot. Other lines are copied. Written
+    bz2-compressed to ``dst``."""
+    rng = np.random.default_rng(seed)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    prev = skewed = None
+    with open_text(src) as f, bz2.open(dst, "wt") as g:
+        for line in f:
+            parts = line.split()
+            if len(parts) > 2 and parts[0] == "FLASER":
+                n = int(parts[1])
+                head = 2 + n
+                laser = np.array([float(v) for v in parts[head : head + 3]])
+                odom = np.array([float(v) for v in parts[head + 3 : head + 6]])
+                if prev is None:
+                    skewed = odom.copy()
+                else:
+                    d = _between2(prev, odom)
+                    d[:2] *= 1.0 + trans_scale
+                    if d[2] != 0.0:  # a heading that repeats stays stale (a stalled encoder)
+                        d[2] = d[2] * (1.0 + yaw_scale) + np.deg2rad(yaw_noise_deg) * rng.normal()
+                    skewed = _compose2(skewed, d)
+                prev = odom
+                skewed[2] = np.arctan2(np.sin(skewed[2]), np.cos(skewed[2]))
+                new_laser = _compose2(skewed, _between2(odom, laser))
+                new_laser[2] = np.arctan2(np.sin(new_laser[2]), np.cos(new_laser[2]))
+                vals = [f"{v:.6f}" for v in (*new_laser, *skewed)]
+                line = " ".join([*parts[:head], *vals, *parts[head + 6 :]]) + "\n"
+            g.write(line)
+    return dst
