@@ -375,7 +375,9 @@ class Dpcr2d:
                       reanchor_deg=float(np.degrees(res_pose[2])),
                       reanchor_jump_m=float(np.linalg.norm(local[:2])))  # fmt: skip
         self._move(res_pose)
-        old_kf = self._anchor_keyframe() if self.cfg.visit_scans > 0 else None
+        big = (np.linalg.norm(local[:2]) > cfg.visit_anchor_min_m
+               or abs(np.degrees(local[2])) > cfg.visit_anchor_min_deg)  # fmt: skip
+        old_kf = self._anchor_keyframe() if cfg.visit_scans > 0 and big else None
         if self._hooked and self.cfg.reanchor_loops and maps[0].owner < len(self.kf_map):
             # a loop, not odometry: the reported pose does not jump; the keyframe of this
             # frame carries the match as a constraint on the nearest map's keyframe

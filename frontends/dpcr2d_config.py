@@ -81,9 +81,11 @@ class Dpcr2dConfig:
     frame is a keyframe whose pose on the old map is measured in the frame of the nearest
     keyframe made ``revisit_path`` m of path or more before (``RegionTag.anchor``;
     Gaussian, never gated: the wide search vouched for it), and the graph spreads the
-    correction over the stretch that drifted. Without an old keyframe within
-    ``revisit_radius``, or without a factor plugin that takes the edge (``--no-loop``), the
-    odometry jumps as before.
+    correction over the stretch that drifted. A re-anchor that moves the robot less than
+    ``visit_anchor_min_m`` and ``visit_anchor_min_deg`` (3 sigmas of the edge's claimed
+    5 cm / 1 deg: the jumped front end agrees with such an edge within its noise), one
+    without an old keyframe within ``revisit_radius``, or without a factor plugin that
+    takes the edge (``--no-loop``), jumps the odometry as before.
 
     wheel_check_m / wheel_check_deg (0: off): a first registration that lands farther
     than this from the wheel-odometry prediction must fit the submap better than PLICP
@@ -197,6 +199,8 @@ class Dpcr2dConfig:
     visit_scans: int = 0
     visit_pad: int = 15
     visit_anchor_edges: bool = False
+    visit_anchor_min_m: float = 0.15
+    visit_anchor_min_deg: float = 3.0
     wheel_check_m: float = 0.1
     wheel_check_deg: float = 4.0
     wheel_check_distance: float = 0.15
