@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.io.carmen import open_text
+from slam.mapping.grid2d import compose2d, inverse2d
 
 GAP_AT = 150  # the first message of gap20's 2 s stall (a third into shorter bags)
 JUMP_AT = 200  # where clockback's clock steps back, glitch's stamp jumps (or half-way)
@@ -146,18 +147,6 @@ def thin_carmen(src: Path, dst: Path, stride: int) -> Path:
     return dst
 
 
-def _compose2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[2]), np.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
-def _between2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[2]), np.sin(a[2])
-    d = b[:2] - a[:2]
-    dth = np.arctan2(np.sin(b[2] - a[2]), np.cos(b[2] - a[2]))
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], dth])
-
-
 def skew_carmen_odometry(
     src: Path, dst: Path, yaw_scale: float = 0.0, trans_scale: float = 0.0,
     yaw_noise_deg: float = 0.0, seed: int = 0,
@@ -182,15 +171,13 @@ def skew_carmen_odometry(
                 if prev is None:
                     skewed = odom.copy()
                 else:
-                    d = _between2(prev, odom)
+                    d = compose2d(inverse2d(prev), odom)
                     d[:2] *= 1.0 + trans_scale
-                    if d[2] != 0.0:  # a heading that repeats stays stale (a stalled encoder)
+                    if odom[2] != prev[2]:  # a heading that repeats stays stale (a stalled encoder)
                         d[2] = d[2] * (1.0 + yaw_scale) + np.deg2rad(yaw_noise_deg) * rng.normal()
-                    skewed = _compose2(skewed, d)
+                    skewed = compose2d(skewed, d)
                 prev = odom
-                skewed[2] = np.arctan2(np.sin(skewed[2]), np.cos(skewed[2]))
-                new_laser = _compose2(skewed, _between2(odom, laser))
-                new_laser[2] = np.arctan2(np.sin(new_laser[2]), np.cos(new_laser[2]))
+                new_laser = compose2d(skewed, compose2d(inverse2d(odom), laser))
                 vals = [f"{v:.6f}" for v in (*new_laser, *skewed)]
                 line = " ".join([*parts[:head], *vals, *parts[head + 6 :]]) + "\n"
             g.write(line)
