@@ -95,14 +95,18 @@ class TrackingGate:
     def may_have_missed(self, res: RegistrationResult, min_eigenvalue: float) -> bool:
         """Whether a registration rejected for its motion may be a true motion over sweeps
         the driver dropped: tracking holds with a known velocity, hypotheses are on and the
-        registration's own quality passes the gate."""
+        registration's own quality passes the gate, or it did not converge (a start a
+        dropped sweep's motion away from the truth)."""
         cfg = self._c.plausibility
         return bool(
             cfg.enabled
             and cfg.missed_frames > 0
             and not self.lost
             and self.velocity_known
-            and quality_problem(res, min_eigenvalue, self.normal, cfg) is None
+            and (
+                not res.converged
+                or quality_problem(res, min_eigenvalue, self.normal, cfg) is None
+            )
         )
 
     def explains_as_usual(self, res: RegistrationResult, min_eigenvalue: float) -> bool:
