@@ -221,3 +221,10 @@ def test_odometry_vs_loop_figure_shows_both_estimates_and_the_loops(close):
     worst = odom.gt_poses[np.argmax(odom.ape_errors), :2, 3]
     assert np.mean(zoom.get_xlim()) == pytest.approx(worst[0])
     assert np.mean(zoom.get_ylim()) == pytest.approx(worst[1])
+
+
+def test_legend_lengths_keep_centimetre_results_apart():
+    from slam.eval.plots import _length
+
+    assert _length(0.0112) == "1.1 cm" and _length(0.0149) == "1.5 cm"
+    assert _length(0.7183) == "0.72 m"

@@ -327,3 +327,11 @@ def test_a_recipe_and_the_beam_table_load_without_scipy_ndimage_signal_or_fft():
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True
     )
     assert run.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_a_planar_scanner_is_described_as_one() -> None:
+    angles = np.radians(np.arange(-90.0, 90.0, 1.0))
+    xyz = np.column_stack([5 * np.cos(angles), 5 * np.sin(angles), np.zeros_like(angles)])
+    model = beams_from_rings([xyz], [np.zeros(len(xyz), dtype=np.int16)])
+    assert model.n_beams == 1
+    assert model.describe() == "planar scanner (one beam), 99 % of returns within 5 m"

@@ -136,3 +136,23 @@ def close_figures():
     yield figs.append
     for f in figs:
         plt.close(f)
+
+
+def test_a_2d_run_shows_its_grid_in_metres_under_the_trajectory(tmp_path):
+    import matplotlib.image
+
+    img = np.full((40, 60), 254, dtype=np.uint8)
+    img[5, :] = 0  # a wall along the top row: y = -1 + (40 - 5.5) * 0.1 = 2.45 m
+    (tmp_path / "map.pgm").write_bytes(b"P5\n60 40\n255\n" + img.tobytes())
+    (tmp_path / "map.yaml").write_text(
+        "image: map.pgm\nresolution: 0.100000\norigin: [-2.000000, -1.000000, 0.0]\n"
+    )
+    rows = [f"{0.1 * k} {0.1 * k} 0.5 0 0 0 0 1" for k in range(20)]
+    (tmp_path / "trajectory.tum").write_text("\n".join(rows) + "\n")
+    fig = birdseye.grid_figure(tmp_path / "map.pgm", np.column_stack([np.arange(20) * 0.1] * 2))
+    ax = fig.axes[0]
+    assert ax.images[0].get_extent() == [-2.0, 4.0, -1.0, 3.0]
+    assert ax.get_ylim()[1] >= 2.45 + 2.0 - 1e-9  # the wall and a margin are in view
+    out = birdseye.map_images(tmp_path)
+    assert out == [tmp_path / "plots" / birdseye.MAP_PNG, tmp_path / "plots" / birdseye.MAP_PGM_PNG]
+    assert matplotlib.image.imread(out[0]).shape[1] > 500

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from slam.cli.common import EXIT_OK, eprint, sim_progress
+from slam.cli.common import EXIT_BAD_INPUT, EXIT_OK, eprint, sim_progress
 
 
 def add_parser(sub: Any) -> None:
@@ -23,14 +23,15 @@ def add_parser(sub: Any) -> None:
     )
     q.add_argument(
         "--sensor",
-        default="vlp16",
         choices=["vlp16", "hdl32", "hdl64", "os128"],
         help="vlp16 (default) | hdl32 | hdl64 (KITTI-style bag: no ring/time fields) | "
         "os128 (Ouster layout: t in ns, 48-byte points)",
     )
     q.add_argument("out", help="output folder")
     q.add_argument("--frames", type=int, help="number of scans (default: the whole path)")
-    q.add_argument("--format", default="ros1", choices=["ros1", "ros2", "mcap"])
+    q.add_argument(
+        "--format", choices=["ros1", "ros2", "mcap"], help="ros1 (default) | ros2 | mcap"
+    )
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--no-pedestrians", action="store_true")
     q.set_defaults(func=cmd_simulate)
@@ -38,9 +39,17 @@ def add_parser(sub: Any) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from slam.sim.floorplan2d import PLANS, simulate2d, write_sequence
-    from slam.sim.simulate import simulate
+    from slam.sim.simulate import SCENES, simulate
 
+    if args.scene not in PLANS and args.scene not in SCENES:
+        eprint(f"error: unknown scene {args.scene!r}; choose one of {sorted(SCENES)} (3D) or "
+               f"{sorted(PLANS)} (2D laser)")  # fmt: skip
+        return EXIT_BAD_INPUT
     if args.scene in PLANS:  # 2D laser in a floor plan: a CARMEN log + ground truth
+        if args.format is not None or args.sensor is not None:
+            eprint(f"error: {args.scene} is a 2D laser scene: it writes a CARMEN log "
+                   "(--format and --sensor are for the 3D scenes)")  # fmt: skip
+            return EXIT_BAD_INPUT
         seq = simulate2d(args.scene, frames=args.frames, seed=args.seed)
         log, gt = write_sequence(seq, Path(args.out))
         eprint(f"wrote {len(seq.stamps)} 2D laser scans to {log} and ground truth to {gt}")
@@ -53,10 +62,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             args.scene,
             Path(args.out),
             frames=args.frames,
-            fmt=args.format,
+            fmt=args.format or "ros1",
             seed=args.seed,
             pedestrians=not args.no_pedestrians,
-            sensor=args.sensor,
+            sensor=args.sensor or "vlp16",
             progress=progress,
         )
     finally:

@@ -248,6 +248,11 @@ def loops_figure(result: EvalResult, segments: np.ndarray, plane: str = "xy"):
     return fig
 
 
+def _length(metres: float) -> str:
+    """A length for a legend: centimetres below 0.1 m (1.2 cm, not 0.01 m), else metres."""
+    return f"{100 * metres:.1f} cm" if abs(metres) < 0.1 else f"{metres:.2f} m"
+
+
 def overlay_figure(results: Mapping[str, EvalResult], plane: str = "xy"):
     """Several aligned estimates (labelled with their APE RMSE) over the first ground truth."""
     plot, mode = evo_plot(), _mode(plane)
@@ -256,7 +261,7 @@ def overlay_figure(results: Mapping[str, EvalResult], plane: str = "xy"):
     first = next(iter(results.values()))
     plot.traj(ax, mode, _traj(first.stamps, first.gt_poses), label=GT_LABEL, **GT_STYLE)
     named = {
-        f"{name} (RMSE {res.ape_trans['rmse']:.3f} m)": _traj(res.stamps, res.est_poses)
+        f"{name} (RMSE {_length(res.ape_trans['rmse'])})": _traj(res.stamps, res.est_poses)
         for name, res in results.items()
     }
     plot.trajectories(ax, named, mode, title=f"Trajectories ({plane})")
@@ -292,7 +297,7 @@ def _pair_traj_axes(ax, odom: EvalResult, closed: EvalResult, segments: np.ndarr
     for res, (name, color) in zip((odom, closed), RUNS, strict=True):
         xy = res.est_poses[:, :2, 3]
         ax.plot(xy[:, 0], xy[:, 1], "-", color=color,
-                label=f"{name} (APE RMSE {res.ape_trans['rmse']:.2f} m)")  # fmt: skip
+                label=f"{name} (APE RMSE {_length(res.ape_trans['rmse'])})")  # fmt: skip
     if len(segments):
         edges = LineCollection(segments[:, :, :2], colors=LOOP_EDGE_COLOR, linewidths=1.5)
         edges.set_label(f"loop closures ({len(segments)})")

@@ -156,8 +156,14 @@ def describe(path: str | Path) -> dict[str, Any]:
     if path.exists() and is_bag_path(path):
         return describe_bag(path)
     source = open_source(path)
-    stamps = np.asarray(getattr(source, "stamps", []), dtype=float)
-    first = next((s for s in source if isinstance(s, Scan)), None)
+    if hasattr(source, "stamps"):
+        stamps = np.asarray(source.stamps, dtype=float)
+        first = next((s for s in source if isinstance(s, Scan)), None)
+    else:  # a log (CARMEN) knows its stamps only by reading its scans
+        scans = (s for s in source if isinstance(s, Scan))
+        first = next(scans, None)
+        rest = [s.stamp for s in scans]
+        stamps = np.asarray(([first.stamp] if first is not None else []) + rest, dtype=float)
     rate = None
     if stamps.size > 1 and stamps[-1] > stamps[0]:
         rate = (stamps.size - 1) / (stamps[-1] - stamps[0])

@@ -104,8 +104,7 @@ class TrackingGate:
             and not self.lost
             and self.velocity_known
             and (
-                not res.converged
-                or quality_problem(res, min_eigenvalue, self.normal, cfg) is None
+                not res.converged or quality_problem(res, min_eigenvalue, self.normal, cfg) is None
             )
         )
 

@@ -119,6 +119,8 @@ class BeamModel:
         """One line for the log, e.g. 'inferred 64 beams, +2.8..-23.6 deg, ...'."""
         lo, hi = self.fov_deg
         verb = "read" if self.source == "ring field" else "inferred"
+        if self.n_beams == 1:  # a 2D laser: no vertical layout to speak of
+            return f"planar scanner (one beam), 99 % of returns within {self.max_range:.0f} m"
         return (
             f"{verb} {self.n_beams} beams, {hi:+.1f}..{lo:+.1f} deg "
             f"(median spacing {self.vertical_resolution_deg:.2f} deg, from the {self.source}), "

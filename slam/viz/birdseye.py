@@ -318,10 +318,50 @@ def pgm_png(pgm: Path, png: Path) -> Path:
     return png
 
 
+def grid_figure(pgm: Path, trajectory_xy: np.ndarray):
+    """A 2D run's occupancy grid (``map.pgm`` placed by its ``map.yaml``: resolution and
+    origin, m) with the trajectory on top, axes in metres."""
+    import matplotlib.pyplot as plt
+
+    from slam.io.grid_map import read_pgm
+
+    meta = {}
+    for line in pgm.with_suffix(".yaml").read_text().splitlines():
+        key, _, value = line.partition(":")
+        meta[key.strip()] = value.strip()
+    res = float(meta["resolution"])
+    ox, oy = (float(v) for v in meta["origin"].strip("[]").split(",")[:2])
+    grey = read_pgm(pgm)
+    rows, cols = grey.shape
+    extent = (ox, ox + cols * res, oy, oy + rows * res)
+    fig = plt.figure(figsize=(10.0, 9.0), dpi=DPI, layout="constrained")
+    ax = fig.add_subplot(111)
+    ax.imshow(grey, cmap="gray", vmin=0, vmax=255, extent=extent, interpolation="nearest")
+    ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="tab:blue", lw=1.0,
+            label="trajectory (optimised)")  # fmt: skip
+    pad = 2.0
+    (x0, y0), (x1, y1) = trajectory_xy.min(axis=0) - pad, trajectory_xy.max(axis=0) + pad
+    occupied = np.argwhere(grey < 100)  # walls: (row, col)
+    if len(occupied):
+        xs = ox + (occupied[:, 1] + 0.5) * res
+        ys = oy + (rows - occupied[:, 0] - 0.5) * res
+        x0, x1 = min(x0, xs.min() - pad), max(x1, xs.max() + pad)
+        y0, y1 = min(y0, ys.min() - pad), max(y1, ys.max() + pad)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("$x$ (m)")
+    ax.set_ylabel("$y$ (m)")
+    ax.set_title(f"{pgm.name}: occupancy grid at {100 * res:.0f} cm (black: walls, grey: unseen)")
+    ax.legend(loc="upper right", frameon=True)
+    return fig
+
+
 def map_images(run_dir: Path, pipeline: Any = None, plots: Path | None = None) -> list[Path]:
     """Write the map pictures of a finished run into ``plots`` (default ``run_dir/plots``):
-    the map file under the optimised trajectory, the map before / after loop closure (when
-    ``pipeline`` is given and closed loops) and ``map.pgm`` as it is. Returns the PNGs; a
+    the map file under the optimised trajectory (a 2D run: its occupancy grid in metres),
+    the map before / after loop closure (when ``pipeline`` is given and closed loops) and
+    ``map.pgm`` as it is. Returns the PNGs; a
     picture that cannot be drawn is logged and left out (a picture never loses a run)."""
     from slam.io.trajectory import read_tum
 
@@ -330,7 +370,11 @@ def map_images(run_dir: Path, pipeline: Any = None, plots: Path | None = None) -
     out: list[Path] = []
     mp, traj = map_file(run_dir), run_dir / "trajectory.tum"
     try:
-        if mp is not None and traj.is_file():
+        pgm = run_dir / "map.pgm"
+        if pgm.is_file() and pgm.with_suffix(".yaml").is_file() and traj.is_file():
+            _, poses = read_tum(traj)  # a 2D run: its map is the grid, not heights
+            out.append(save_png(grid_figure(pgm, poses[:, :2, 3]), plots / MAP_PNG))
+        elif mp is not None and traj.is_file():
             _, poses = read_tum(traj)
             fig = birdseye_figure(read_map_points(mp), poses[:, :2, 3], title=mp.name)
             out.append(save_png(fig, plots / MAP_PNG))
