@@ -247,3 +247,79 @@ def test_evaluate_never_touches_home(evo_cli):
     assert list(ours["home"].iterdir()) == []
     # whereas evo's CLI did write its settings into its own HOME
     assert (ours["home"].parent / "home_ape_trans" / ".evo" / "settings.json").is_file()
+
+
+def _tum_text(stamps: np.ndarray, poses: np.ndarray) -> list[str]:
+    """TUM lines of poses (one per pose) to edit before writing."""
+    from slam.io.trajectory import poses_to_tum_rows
+
+    return [" ".join(f"{v:.9f}" for v in row) for row in poses_to_tum_rows(stamps, poses)]
+
+
+def test_a_row_that_is_no_pose_names_its_file_and_line(tmp_path):
+    from slam.eval.metrics import read_trajectory
+    from slam.io.trajectory import read_tum
+
+    stamps, gt, _ = make_pair(n=20)
+    lines = _tum_text(stamps, gt)
+    lines[3] = f"{stamps[3]:.9f} 1 2 3 0 0 0 0"  # zero quaternion
+    path = tmp_path / "zeroq.tum"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n\n" + "\n".join(lines) + "\n")
+    for read in (read_trajectory, read_tum):  # was scipy's ValueError: zero norm quaternions
+        with pytest.raises(InputError, match=r"zeroq.tum, line 6: zero quaternion"):
+            read(path)
+    lines[3] = f"{stamps[3]:.9f} 1 nan 3 0 0 0 1"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"line 4: values not finite"):
+        read_trajectory(path)
+    kitti = np.zeros((5, 12))
+    kitti[2, 0] = np.inf
+    np.savetxt(tmp_path / "k.txt", kitti)
+    with pytest.raises(InputError, match=r"k.txt, line 3: values not finite"):
+        read_trajectory(tmp_path / "k.txt")
+
+
+def test_stamps_must_increase(tmp_path, caplog):
+    from slam.eval.metrics import read_trajectory
+
+    stamps, gt, est = make_pair(n=30)
+    path = tmp_path / "same.tum"
+    write_tum(path, np.full(30, 1.7e9), est)  # every stamp the same: was APE 10.8 m, exit 0
+    with pytest.raises(InputError, match="all 30 poses have the same stamp"):
+        read_trajectory(path)
+    lines = _tum_text(stamps, est)
+    back = lines[:10] + [lines[12]] + lines[10:12] + lines[13:]
+    (tmp_path / "back.tum").write_text("\n".join(back) + "\n")
+    went_back = r"back.tum, line 12: stamp 1.000000000 goes back in time from the stamp 1.2"
+    with pytest.raises(InputError, match=went_back + r"0+ of line 11"):
+        read_trajectory(tmp_path / "back.tum")
+    twice = lines[:5] + [lines[5].replace(lines[5].split()[1], "9.0", 1)] + lines[5:]
+    (tmp_path / "twice.tum").write_text("\n".join(twice) + "\n")
+    with pytest.raises(InputError, match=r"line 7: stamp 0.500000000 repeats the stamp"):
+        read_trajectory(tmp_path / "twice.tum")
+    # a line written twice verbatim carries nothing new: dropped with one warning
+    dup = lines[:8] + [lines[7], lines[7]] + lines[8:]
+    (tmp_path / "dup.tum").write_text("\n".join(dup) + "\n")
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    with caplog.at_level("WARNING"):
+        got_stamps, got = read_trajectory(tmp_path / "dup.tum")
+        res = evaluate(tmp_path / "dup.tum", tmp_path / "gt.tum")
+    np.testing.assert_allclose(got_stamps, stamps)
+    assert len(got) == 30 and res.n_matched == 30
+    assert "2 line(s) repeat the line before verbatim (first: line 9); dropped" in caplog.text
+
+
+def test_eval_cli_bad_rows_exit_2_without_traceback(tmp_path, capsys):
+    from slam.cli import main
+
+    stamps, gt, est = make_pair(n=20)
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    lines = _tum_text(stamps, est)
+    lines[0] = f"{stamps[0]:.9f} 0 0 0 0 0 0 0"
+    (tmp_path / "zeroq.tum").write_text("\n".join(lines) + "\n")
+    assert main(["eval", str(tmp_path / "zeroq.tum"), str(tmp_path / "gt.tum")]) == 2
+    err = capsys.readouterr().err
+    assert "zeroq.tum, line 1: zero quaternion" in err and "Traceback" not in err
+    write_tum(tmp_path / "same.tum", np.zeros(20), est)
+    assert main(["eval", str(tmp_path / "same.tum"), str(tmp_path / "gt.tum")]) == 2
+    assert "same stamp" in capsys.readouterr().err
