@@ -119,7 +119,9 @@ def run_one(
     from slam.system import SlamSystem
 
     resolved = resolved_config(config)
-    source = open_source(bag, topic=topic or config.source.topic)
+    source = open_source(
+        bag, topic=topic or config.source.topic, frame_period=config.source.frame_period
+    )
     system = SlamSystem(config, observers=observers)
     try:
         stream, total = _open_stream(bag, source, system)
