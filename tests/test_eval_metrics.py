@@ -279,34 +279,36 @@ def test_a_row_that_is_no_pose_names_its_file_and_line(tmp_path):
         read_trajectory(tmp_path / "k.txt")
 
 
-def test_stamps_must_increase(tmp_path, caplog):
-    from slam.eval.metrics import read_trajectory
+def test_stamps_all_equal_or_twice_are_errors_going_back_is_sorted(tmp_path, caplog):
+    from slam.eval.metrics import read_for_eval, read_trajectory
 
     stamps, gt, est = make_pair(n=30)
+    write_tum(tmp_path / "gt.tum", stamps, gt)
     path = tmp_path / "same.tum"
     write_tum(path, np.full(30, 1.7e9), est)  # every stamp the same: was APE 10.8 m, exit 0
-    with pytest.raises(InputError, match="all 30 poses have the same stamp"):
-        read_trajectory(path)
+    for read in (read_trajectory, read_for_eval):
+        with pytest.raises(InputError, match="all 30 poses have the same stamp"):
+            read(path)
     lines = _tum_text(stamps, est)
-    back = lines[:10] + [lines[12]] + lines[10:12] + lines[13:]
-    (tmp_path / "back.tum").write_text("\n".join(back) + "\n")
-    went_back = r"back.tum, line 12: stamp 1.000000000 goes back in time from the stamp 1.2"
-    with pytest.raises(InputError, match=went_back + r"0+ of line 11"):
-        read_trajectory(tmp_path / "back.tum")
     twice = lines[:5] + [lines[5].replace(lines[5].split()[1], "9.0", 1)] + lines[5:]
     (tmp_path / "twice.tum").write_text("\n".join(twice) + "\n")
-    with pytest.raises(InputError, match=r"line 7: stamp 0.500000000 repeats the stamp"):
-        read_trajectory(tmp_path / "twice.tum")
-    # a line written twice verbatim carries nothing new: dropped with one warning
-    dup = lines[:8] + [lines[7], lines[7]] + lines[8:]
-    (tmp_path / "dup.tum").write_text("\n".join(dup) + "\n")
-    write_tum(tmp_path / "gt.tum", stamps, gt)
+    with pytest.raises(InputError, match=r"line 7: stamp 0.50+ is also the stamp of line 6"):
+        evaluate(tmp_path / "twice.tum", tmp_path / "gt.tum")
+    # stamps that go back (a CARMEN run's files keep the log's own): evaluated in time
+    # order, the file read as it is; a line written twice verbatim is dropped
+    back = lines[:10] + [lines[12]] + lines[10:12] + lines[13:] + [lines[20]]
+    (tmp_path / "back.tum").write_text("\n".join(back) + "\n")
+    assert read_trajectory(tmp_path / "back.tum")[0][10] == pytest.approx(1.2)
+    write_tum(tmp_path / "est.tum", stamps, est)
     with caplog.at_level("WARNING"):
-        got_stamps, got = read_trajectory(tmp_path / "dup.tum")
-        res = evaluate(tmp_path / "dup.tum", tmp_path / "gt.tum")
+        got_stamps, got = read_for_eval(tmp_path / "back.tum")
+        res = evaluate(tmp_path / "back.tum", tmp_path / "gt.tum")
     np.testing.assert_allclose(got_stamps, stamps)
-    assert len(got) == 30 and res.n_matched == 30
-    assert "2 line(s) repeat the line before verbatim (first: line 9); dropped" in caplog.text
+    np.testing.assert_allclose(got, read_trajectory(tmp_path / "est.tum")[1], atol=1e-8)
+    ref = evaluate(tmp_path / "est.tum", tmp_path / "gt.tum")
+    assert res.n_matched == 30 and res.rpe_trans == pytest.approx(ref.rpe_trans)
+    assert "2 stamp(s) go back in time (first: line 12); evaluated in time order" in caplog.text
+    assert "1 line(s) repeat another verbatim (first: line 31); dropped" in caplog.text
 
 
 def test_eval_cli_bad_rows_exit_2_without_traceback(tmp_path, capsys):
