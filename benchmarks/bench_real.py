@@ -56,7 +56,7 @@ from slam.bench.peers import (
 from slam.config import load_config
 from slam.eval.map_blur import map_blur
 from slam.eval.metrics import EvalOptions, evaluate_arrays
-from slam.io.folders import cloud_files, read_cloud
+from slam.io.folders import FolderSource, read_cloud
 from slam.io.kitti import KittiSource
 from slam.pipeline import Pipeline
 from slam.types import Scan
@@ -99,7 +99,9 @@ def kitti_odometry(seq: str) -> Sequence:
 
 
 def _folder(path: Path, period: float) -> list[Scan]:
-    return [read_cloud(f, index=i, stamp=period * i) for i, f in enumerate(cloud_files(path))]
+    """The scans of a folder of numbered clouds ``period`` s apart, as ``slam run`` reads
+    it with ``--set source.frame_period=PERIOD``."""
+    return [s for s in FolderSource(path, frame_period=period) if isinstance(s, Scan)]
 
 
 def hilti() -> Sequence:

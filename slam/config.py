@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from importlib import resources
 from importlib.resources.abc import Traversable
@@ -34,6 +35,7 @@ DEFAULT_CONFIG = "improved_floam"
 
 
 LAYOUT_TIME = ("auto", "always", "never")
+FRAME_PERIOD_S = 0.1  # a spinning LiDAR's 10 Hz
 
 
 @dataclass
@@ -59,6 +61,11 @@ class SourceConfig:
     reorder_window: scans held and released in stamp order in front of the pipeline, so
     that messages recorded a few places out of order are kept (0 = off); a stamp still
     out of order after it is skipped and counted.
+    frame_period: seconds between scans of a folder (.pcd/.ply, KITTI .bin) whose file
+    names are frame numbers (``0.pcd``, ``000001.bin``) or not numbers, and that has no
+    ``times.txt``: scan i is stamped i * frame_period (0.1 s = 10 Hz; nuScenes keyframes
+    are 0.5 s apart). File names that are stamps, and a KITTI ``times.txt``, are used as
+    they are. The front ends' motion prediction and plausibility checks use these stamps.
     """
 
     topic: str | None = None
@@ -69,8 +76,13 @@ class SourceConfig:
     layout_time: str = "auto"
     stamps: str = "auto"
     reorder_window: int = 4
+    frame_period: float = FRAME_PERIOD_S
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.frame_period) and self.frame_period > 0):
+            raise ConfigError(
+                f"source.frame_period must be > 0 s (0.1 = 10 Hz), got {self.frame_period}"
+            )
         if self.stamps not in ("auto", "header", "record"):
             raise ConfigError(
                 f"source.stamps must be one of auto, header, record, got {self.stamps!r}"

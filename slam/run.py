@@ -113,13 +113,21 @@ def run_one(
 ) -> dict[str, Any]:
     """Run one configuration on one input, write all outputs; returns a summary dict.
 
+    ``gt`` is read and checked before the first scan (``slam.eval.ground_truth``);
     ``observers``: ``slam.observer.RunObserver`` s that watch the run (a live viewer)."""
     from slam.io.source import open_source
     from slam.pipeline import resolved_config, run_stream
     from slam.system import SlamSystem
 
     resolved = resolved_config(config)
-    source = open_source(bag, topic=topic or config.source.topic)
+    source = open_source(
+        bag, topic=topic or config.source.topic, frame_period=config.source.frame_period
+    )
+    truth = None
+    if gt is not None:
+        from slam.eval.ground_truth import read_ground_truth
+
+        truth = read_ground_truth(gt, source)
     system = SlamSystem(config, observers=observers)
     try:
         stream, total = _open_stream(bag, source, system)
@@ -148,8 +156,10 @@ def run_one(
         "system": system,
         "pipeline": system,  # the name scripts used before
     }
-    if gt is not None and state.frames > 1:
-        summary["eval"] = evaluate_run(out, gt, system, title=label or config.name)
+    if truth is not None:
+        summary["gt_notes"], summary["gt_warnings"] = truth.notes, truth.warnings
+        if state.frames > 1:
+            summary["eval"] = evaluate_run(out, truth, system, title=label or config.name)
     return summary
 
 
@@ -165,7 +175,8 @@ def compare(
     configure: Callable[[Any], None] | None = None,
 ) -> dict[str, Any]:
     """Run each config on the same input (``out/<config>``; the first that stops early ends
-    the comparison); the papers' APE table, plots and report in ``out``.
+    the comparison); the papers' APE table, plots and report in ``out``. Every config is
+    loaded and checked before the first run, and the ground truth read before its scans.
 
     ``configure(config)``: applied to every loaded config (e.g. the CLI's --start/--strict).
     Returns results (config -> evaluation), tables (by format), out and stops (config ->
@@ -174,13 +185,16 @@ def compare(
     from slam.eval.plots import plot_all
     from slam.eval.report import write_report
     from slam.eval.tables import ape_table, format_table
+    from slam.pipeline import resolved_config
 
     results: dict[str, Any] = {}
     stops: dict[str, Any] = {}
-    for name in configs:
-        config = load_config(name, overrides)
+    loaded = [load_config(name, overrides) for name in configs]  # every name, before any run
+    for config in loaded:
         if configure is not None:
             configure(config)
+        resolved_config(config)  # plugin keys checked too: a bad one stops nothing half-way
+    for config in loaded:
         summary = run_one(
             bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
         )
@@ -204,14 +218,17 @@ def compare(
     return {"results": results, "tables": tables, "out": out, "stops": stops}
 
 
-def evaluate_run(out: Path, gt: Path, system: Any = None, title: str = "run") -> Any:
-    """APE/RPE against ground truth, plots and the HTML report of one run."""
-    from slam.eval.metrics import evaluate
+def evaluate_run(out: Path, gt: Any, system: Any = None, title: str = "run") -> Any:
+    """APE/RPE against ground truth (a file, or ``slam.eval.ground_truth.GroundTruth``),
+    plots and the HTML report of one run."""
+    from slam.eval.ground_truth import GroundTruth, evaluate_truth, read_ground_truth
     from slam.eval.plots import plot_all
     from slam.eval.report import write_report
     from slam.eval.tables import ape_table, format_table
 
-    result = evaluate(out / "trajectory.tum", gt)
+    truth = gt if isinstance(gt, GroundTruth) else read_ground_truth(gt)
+    gt = truth.path
+    result = evaluate_truth(out / "trajectory.tum", truth)
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
     loops = _loop_positions(system) if system is not None else None
     images = plot_all(result, out / "plots", loop_positions=loops)

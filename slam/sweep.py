@@ -78,6 +78,22 @@ def make_jobs(
     return jobs
 
 
+def check_jobs(jobs: Sequence[SweepJob]) -> None:
+    """Build the config of every grid point (plugin keys included) and read every ground
+    truth before anything runs: ConfigError / InputError naming the first bad one."""
+    from slam.config import load_config
+    from slam.eval.metrics import read_for_eval
+    from slam.pipeline import resolved_config
+
+    for config_name, sets in dict.fromkeys((job.config, job.overrides) for job in jobs):
+        try:
+            resolved_config(load_config(config_name, list(sets)))
+        except ConfigError as exc:
+            raise ConfigError(f"grid point {' '.join(sets)}: {exc}") from exc
+    for gt in dict.fromkeys(job.gt for job in jobs):
+        read_for_eval(gt)
+
+
 def run_job(job: SweepJob) -> dict[str, Any]:
     """Run one grid point (in a worker); returns the row of the results table."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")

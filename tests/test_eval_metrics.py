@@ -247,3 +247,81 @@ def test_evaluate_never_touches_home(evo_cli):
     assert list(ours["home"].iterdir()) == []
     # whereas evo's CLI did write its settings into its own HOME
     assert (ours["home"].parent / "home_ape_trans" / ".evo" / "settings.json").is_file()
+
+
+def _tum_text(stamps: np.ndarray, poses: np.ndarray) -> list[str]:
+    """TUM lines of poses (one per pose) to edit before writing."""
+    from slam.io.trajectory import poses_to_tum_rows
+
+    return [" ".join(f"{v:.9f}" for v in row) for row in poses_to_tum_rows(stamps, poses)]
+
+
+def test_a_row_that_is_no_pose_names_its_file_and_line(tmp_path):
+    from slam.eval.metrics import read_trajectory
+    from slam.io.trajectory import read_tum
+
+    stamps, gt, _ = make_pair(n=20)
+    lines = _tum_text(stamps, gt)
+    lines[3] = f"{stamps[3]:.9f} 1 2 3 0 0 0 0"  # zero quaternion
+    path = tmp_path / "zeroq.tum"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n\n" + "\n".join(lines) + "\n")
+    for read in (read_trajectory, read_tum):  # was scipy's ValueError: zero norm quaternions
+        with pytest.raises(InputError, match=r"zeroq.tum, line 6: zero quaternion"):
+            read(path)
+    lines[3] = f"{stamps[3]:.9f} 1 nan 3 0 0 0 1"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"line 4: values not finite"):
+        read_trajectory(path)
+    kitti = np.zeros((5, 12))
+    kitti[2, 0] = np.inf
+    np.savetxt(tmp_path / "k.txt", kitti)
+    with pytest.raises(InputError, match=r"k.txt, line 3: values not finite"):
+        read_trajectory(tmp_path / "k.txt")
+
+
+def test_stamps_all_equal_or_twice_are_errors_going_back_is_sorted(tmp_path, caplog):
+    from slam.eval.metrics import read_for_eval, read_trajectory
+
+    stamps, gt, est = make_pair(n=30)
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    path = tmp_path / "same.tum"
+    write_tum(path, np.full(30, 1.7e9), est)  # every stamp the same: was APE 10.8 m, exit 0
+    for read in (read_trajectory, read_for_eval):
+        with pytest.raises(InputError, match="all 30 poses have the same stamp"):
+            read(path)
+    lines = _tum_text(stamps, est)
+    twice = lines[:5] + [lines[5].replace(lines[5].split()[1], "9.0", 1)] + lines[5:]
+    (tmp_path / "twice.tum").write_text("\n".join(twice) + "\n")
+    with pytest.raises(InputError, match=r"line 7: stamp 0.50+ is also the stamp of line 6"):
+        evaluate(tmp_path / "twice.tum", tmp_path / "gt.tum")
+    # stamps that go back (a CARMEN run's files keep the log's own): evaluated in time
+    # order, the file read as it is; a line written twice verbatim is dropped
+    back = lines[:10] + [lines[12]] + lines[10:12] + lines[13:] + [lines[20]]
+    (tmp_path / "back.tum").write_text("\n".join(back) + "\n")
+    assert read_trajectory(tmp_path / "back.tum")[0][10] == pytest.approx(1.2)
+    write_tum(tmp_path / "est.tum", stamps, est)
+    with caplog.at_level("WARNING"):
+        got_stamps, got = read_for_eval(tmp_path / "back.tum")
+        res = evaluate(tmp_path / "back.tum", tmp_path / "gt.tum")
+    np.testing.assert_allclose(got_stamps, stamps)
+    np.testing.assert_allclose(got, read_trajectory(tmp_path / "est.tum")[1], atol=1e-8)
+    ref = evaluate(tmp_path / "est.tum", tmp_path / "gt.tum")
+    assert res.n_matched == 30 and res.rpe_trans == pytest.approx(ref.rpe_trans)
+    assert "2 stamp(s) go back in time (first: line 12); evaluated in time order" in caplog.text
+    assert "1 line(s) repeat another verbatim (first: line 31); dropped" in caplog.text
+
+
+def test_eval_cli_bad_rows_exit_2_without_traceback(tmp_path, capsys):
+    from slam.cli import main
+
+    stamps, gt, est = make_pair(n=20)
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    lines = _tum_text(stamps, est)
+    lines[0] = f"{stamps[0]:.9f} 0 0 0 0 0 0 0"
+    (tmp_path / "zeroq.tum").write_text("\n".join(lines) + "\n")
+    assert main(["eval", str(tmp_path / "zeroq.tum"), str(tmp_path / "gt.tum")]) == 2
+    err = capsys.readouterr().err
+    assert "zeroq.tum, line 1: zero quaternion" in err and "Traceback" not in err
+    write_tum(tmp_path / "same.tum", np.zeros(20), est)
+    assert main(["eval", str(tmp_path / "same.tum"), str(tmp_path / "gt.tum")]) == 2
+    assert "same stamp" in capsys.readouterr().err

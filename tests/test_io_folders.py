@@ -365,3 +365,54 @@ def test_slam_run_on_a_real_velodyne_folder(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 3 and metrics["skipped_frames"] == 0
     assert metrics["sensor"].startswith("inferred 64 beams") and "point layout" in metrics["sensor"]
+
+
+def test_frame_period_stamps_numbered_scans(tmp_path):
+    """nuScenes keyframes (0.pcd ... 38.pcd) are 2 Hz: ``source.frame_period`` 0.5 stamps
+    them 0, 0.5, 1.0, ... (the default 0.1 s made a 10 Hz sequence of them), and the
+    input notes say how the scans were stamped."""
+    from slam.config import load_config
+    from slam.errors import ConfigError
+
+    clouds = shared_path("nuscenes_keyframes", "clouds")
+    src = open_source(clouds, frame_period=0.5)
+    assert isinstance(src, FolderSource) and len(src) == 39
+    np.testing.assert_allclose(src.stamps, np.arange(39) * 0.5)
+    assert src.notes == [
+        "the file names are frame numbers, not stamps: scans are 0.5 s apart (2 Hz; "
+        "--set source.frame_period=SECONDS for another rate)"
+    ]
+    np.testing.assert_allclose(open_source(clouds).stamps[:3], [0.0, 0.1, 0.2])
+    # KITTI scans without times.txt, and the config field with its checks
+    bins = tmp_path / "scans"
+    bins.mkdir()
+    for i in range(3):
+        np.ones((4, 4), "<f4").tofile(bins / f"{i:06d}.bin")
+    assert [s.stamp for s in KittiSource(bins, frame_period=0.25)] == [0.0, 0.25, 0.5]
+    assert "0.25 s apart (4 Hz" in KittiSource(bins, frame_period=0.25).notes[0]
+    assert load_config(None, ["source.frame_period=0.5"]).source.frame_period == 0.5
+    assert load_config(None).source.frame_period == 0.1
+    for bad in ("0", "-1", "abc", ".nan"):
+        with pytest.raises(ConfigError, match="frame_period"):
+            load_config(None, [f"source.frame_period={bad}"])
+    # names that are stamps stay stamps whatever the period
+    assert FolderSource(shared_path("hilti_indoor", "clouds"), frame_period=0.5).stamps[1] == 0.5
+    stamped = tmp_path / "stamped"
+    stamped.mkdir()
+    for stem in ("100.25", "100.75"):
+        write_cloud(stamped / f"{stem}.pcd", np.ones((3, 3)))
+    src = FolderSource(stamped, frame_period=0.5)
+    assert list(src.stamps) == [100.25, 100.75] and src.notes == []
+
+
+def test_slam_run_frame_period_reaches_the_folder_reader(tmp_path):
+    """``slam run FOLDER --set source.frame_period=0.5``: the run's stamps are 0.5 s apart."""
+    from slam.cli import main
+    from slam.io.trajectory import read_tum
+
+    out = tmp_path / "run"
+    clouds = shared_path("nuscenes_keyframes", "clouds")
+    args = ["run", str(clouds), "--out", str(out), "--max-frames", "3", "--quiet"]
+    assert main([*args, "--set", "source.frame_period=0.5"]) == 0
+    stamps, _ = read_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(stamps, [0.0, 0.5, 1.0])

@@ -69,7 +69,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def print_run_summary(summary: dict[str, Any]) -> None:
-    """Frames, loops, speed, memory, input notes, skipped messages, tracking and APE."""
+    """Frames, loops, speed, memory, input notes, skipped messages, tracking, degenerate
+    frames or an empty map, how the ground truth was taken and APE."""
     out = summary["out"]
     metrics = json.loads((out / "metrics.json").read_text())
     fps = metrics.get("frames_per_second")
@@ -101,6 +102,12 @@ def print_run_summary(summary: dict[str, Any]) -> None:
             f"{counts.get('tracking_lost', 0)} frames lost (prediction kept, not mapped), "
             f"{counts.get('recovered', 0)} recoveries"
         )
+    if warning := degenerate_warning(metrics, summary):
+        eprint(f"warning: {warning}")
+    for note in summary.get("gt_notes") or []:
+        eprint(f"note: {note}")
+    for warning in summary.get("gt_warnings") or []:
+        eprint(f"warning: {warning}")
     if "eval" in summary:
         ape = summary["eval"].ape_trans
         eprint(
@@ -108,3 +115,21 @@ def print_run_summary(summary: dict[str, Any]) -> None:
             + "  ".join(f"{k} {ape[k]:.4f}" for k in ("rmse", "mean", "median", "max") if k in ape)
         )
     eprint(f"outputs written to {out}/")
+
+
+def degenerate_warning(metrics: dict[str, Any], summary: dict[str, Any]) -> str | None:
+    """One line when frames were degenerate (registration unconstrained along some
+    direction) or the map came out empty though one was asked for; else None."""
+    parts = []
+    frames = metrics.get("frames") or summary.get("frames") or 0
+    degenerate = metrics.get("degenerate_frames") or 0
+    if degenerate:
+        parts.append(
+            f"{degenerate} of {frames} frames were degenerate (the scans constrain the "
+            "motion poorly along some direction: a corridor, an open field)"
+        )
+    system = summary.get("system")
+    wants_map = system is None or system.config.output.write_map
+    if wants_map and frames and not metrics.get("map_points"):
+        parts.append("the map is empty (no keyframe was mapped, or none kept a point)")
+    return "; ".join(parts) or None

@@ -51,13 +51,22 @@ def _sweep_inputs(args: argparse.Namespace) -> list[tuple[str, str]]:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from slam.sweep import format_rows, make_jobs, parse_grid, plot_heatmap, run_sweep, write_table
+    from slam.sweep import (
+        check_jobs,
+        format_rows,
+        make_jobs,
+        parse_grid,
+        plot_heatmap,
+        run_sweep,
+        write_table,
+    )
 
     inputs = _sweep_inputs(args)
     grid = parse_grid(args.grid)
     out = Path(args.out) if args.out else default_out_dir("sweep")
-    out.mkdir(parents=True, exist_ok=True)
     jobs = make_jobs(inputs, grid, args.config or "improved_floam", out, args.set, args.max_frames)
+    check_jobs(jobs)  # every grid value and ground truth, before the first run
+    out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
     with tqdm(

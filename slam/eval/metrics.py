@@ -10,6 +10,7 @@ evo's settings in ``~/.evo`` and never opens a GUI.
 from __future__ import annotations
 
 import copy
+import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -21,10 +22,12 @@ from evo.core.trajectory import PoseTrajectory3D
 
 from slam.errors import ConfigError, InputError
 from slam.eval.kitti import KITTI_LENGTHS, kitti_metric, kitti_metric_scaled
-from slam.io.trajectory import tum_rows_to_poses
+from slam.io.trajectory import check_rows, data_line_numbers, load_rows, tum_rows_to_poses
 
 ALIGN_CHOICES = ("se3", "sim3", "origin", "none")
 RPE_UNITS = ("m", "frames")
+log = logging.getLogger(__name__)
+
 STAT_KEYS = ("max", "mean", "median", "min", "rmse", "sse", "std")
 
 
@@ -133,26 +136,87 @@ def _stats(metric: metrics.PE) -> dict:
 
 
 def read_trajectory(path: str | Path) -> tuple[np.ndarray | None, np.ndarray]:
-    """(stamps or None, (N,4,4) poses) from a TUM (8 columns) or KITTI (12 columns) file."""
+    """(stamps or None, (N,4,4) poses) from a TUM (8 columns) or KITTI (12 columns) file,
+    in file order.
+
+    InputError naming the file and line for a row that is no pose (a value not finite, a
+    zero quaternion), and for TUM stamps that are all the same. ``read_for_eval`` also
+    puts the poses in time order, as APE/RPE need them.
+    """
+    rows = _rows(Path(path))
+    return (None, _kitti_poses(rows)) if rows.shape[1] == 12 else tum_rows_to_poses(rows)
+
+
+def read_for_eval(path: str | Path) -> tuple[np.ndarray | None, np.ndarray]:
+    """``read_trajectory`` with TUM poses in strictly increasing time, as evaluation needs
+    them: stamps that go back are sorted (one warning: a CARMEN run's files keep the log's
+    own stamps, a few out of order), a line repeated verbatim is dropped (one warning; evo
+    would match either copy), one stamp with two different poses is an InputError naming
+    both lines."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"trajectory file not found: {path}")
-    try:
-        rows = np.loadtxt(path, comments="#", ndmin=2)
-    except ValueError as exc:
-        raise InputError(f"{path}: not a TUM or KITTI trajectory: {exc}") from exc
-    if rows.size == 0:
-        raise InputError(f"{path}: trajectory is empty")
-    if rows.shape[1] == 8:
-        return tum_rows_to_poses(rows)
+    rows = _rows(path)
     if rows.shape[1] == 12:
-        poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
-        poses[:, :3, :] = rows.reshape(-1, 3, 4)
-        return None, poses
-    raise InputError(
-        f"{path}: {rows.shape[1]} columns; expected 8 (TUM: stamp tx ty tz qx qy qz qw) "
-        "or 12 (KITTI: 3x4 pose row-major)"
-    )
+        return None, _kitti_poses(rows)
+    return tum_rows_to_poses(_time_ordered(rows, path))
+
+
+def _kitti_poses(rows: np.ndarray) -> np.ndarray:
+    """(N,4,4) poses of (N,12) KITTI rows (3x4 row-major)."""
+    poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    return poses
+
+
+def _rows(path: Path) -> np.ndarray:
+    """The checked rows of a TUM or KITTI trajectory file (see ``read_trajectory``)."""
+    rows = load_rows(path, "a TUM or KITTI trajectory")
+    if rows.shape[1] not in (8, 12):
+        raise InputError(
+            f"{path}: {rows.shape[1]} columns; expected 8 (TUM: stamp tx ty tz qx qy qz qw) "
+            "or 12 (KITTI: 3x4 pose row-major)"
+        )
+    check_rows(rows, path)
+    stamps = rows[:, 0]
+    if rows.shape[1] == 8 and len(stamps) > 1 and np.all(stamps == stamps[0]):
+        raise InputError(
+            f"{path}: all {len(stamps)} poses have the same stamp {stamps[0]:.9g} s; a TUM "
+            "trajectory needs one increasing stamp per pose (first column, seconds)"
+        )
+    return rows
+
+
+def _time_ordered(rows: np.ndarray, path: Path) -> np.ndarray:
+    """TUM rows sorted by stamp (stable), verbatim repeats dropped; a warning for each
+    kind of repair, an InputError naming the lines of one stamp with two poses."""
+    step = np.diff(rows[:, 0])
+    if np.all(step > 0):
+        return rows
+    lines = data_line_numbers(path)
+    if np.any(step < 0):
+        first = int(np.flatnonzero(step < 0)[0]) + 1
+        log.warning(
+            "%s: %d stamp(s) go back in time (first: line %d); evaluated in time order",
+            path, int(np.sum(step < 0)), lines[first],
+        )  # fmt: skip
+        order = np.argsort(rows[:, 0], kind="stable")
+        rows, lines = rows[order], lines[order]
+    same = np.diff(rows[:, 0]) == 0
+    repeat = np.flatnonzero(same & np.all(rows[1:] == rows[:-1], axis=1)) + 1
+    if repeat.size:
+        log.warning(
+            "%s: %d line(s) repeat another verbatim (first: line %d); dropped",
+            path, repeat.size, lines[repeat[0]],
+        )  # fmt: skip
+        rows, lines = np.delete(rows, repeat, axis=0), np.delete(lines, repeat)
+    twice = np.flatnonzero(np.diff(rows[:, 0]) == 0)
+    if twice.size:
+        i = twice[0] + 1
+        raise InputError(
+            f"{path}, line {lines[i]}: stamp {rows[i, 0]:.9f} is also the stamp of line "
+            f"{lines[i - 1]}, with another pose ({twice.size} such stamp(s)); a TUM "
+            "trajectory needs one pose per stamp"
+        )
+    return rows
 
 
 def evaluate(
@@ -160,15 +224,29 @@ def evaluate(
 ) -> EvalResult:
     """Compare an estimate file with a ground-truth file (TUM or KITTI, by column count).
 
-    TUM files are associated by time; if either file is KITTI (no stamps) the poses are
-    paired by index and both files must have the same number of poses.
+    TUM files are associated by time (``read_for_eval``); if either file is KITTI (no
+    stamps) the poses are paired by index and both files must have the same number of
+    poses.
     """
-    est_stamps, est_poses = read_trajectory(est_path)
-    gt_stamps, gt_poses = read_trajectory(gt_path)
+    est_stamps, est_poses = read_for_eval(est_path)
+    gt_stamps, gt_poses = read_for_eval(gt_path)
+    return evaluate_named(
+        (est_stamps, est_poses, str(est_path)), (gt_stamps, gt_poses, str(gt_path)), options
+    )
+
+
+def evaluate_named(
+    est: tuple[np.ndarray | None, np.ndarray, str],
+    gt: tuple[np.ndarray | None, np.ndarray, str],
+    options: EvalOptions | None = None,
+) -> EvalResult:
+    """``evaluate`` of (stamps or None, poses, name) pairs: without stamps on one side the
+    poses are paired by index (an InputError naming both when the counts differ)."""
+    (est_stamps, est_poses, est_name), (gt_stamps, gt_poses, gt_name) = est, gt
     if est_stamps is None or gt_stamps is None:
         if len(est_poses) != len(gt_poses):
             raise InputError(
-                f"{est_path} ({len(est_poses)} poses) and {gt_path} ({len(gt_poses)} poses): "
+                f"{est_name} ({len(est_poses)} poses) and {gt_name} ({len(gt_poses)} poses): "
                 "a KITTI file has no stamps, so both must have one pose per frame"
             )
         stamps = gt_stamps if gt_stamps is not None else est_stamps

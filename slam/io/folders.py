@@ -2,8 +2,9 @@
 
 Files are sorted naturally by name (``2.pcd`` before ``10.pcd``). Stamps come from the
 file names when all of them are numbers (seconds; values above 1e15 are taken as ns, above
-1e12 as us), else index * 0.1 s. Intensity, ring and per-point time are kept when the files
-have such attributes (``intensity``, ``ring``, ``time``, ...). A file that cannot be
+1e12 as us), else index * ``frame_period`` (``source.frame_period``, 0.1 s by default;
+frame numbers: number * ``frame_period``). Intensity, ring and per-point time are kept when
+the files have such attributes (``intensity``, ``ring``, ``time``, ...). A file that cannot be
 decoded (empty, truncated, no x/y/z, all points NaN) is yielded as a SkippedMessage and
 reading goes on; a file that cannot be opened at all raises InputError.
 """
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.config import FRAME_PERIOD_S
 from slam.errors import InputError
 from slam.io.pcd import read_pcd_columns
 from slam.io.points import INTENSITY_NAMES, RING_NAMES, TIME_NAMES, Notes, assemble_scan, pick
@@ -23,7 +25,6 @@ from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, NO_XYZ, FrameError, checked,
 from slam.types import Scan, SkippedMessage
 
 SUFFIXES = (".pcd", ".ply")
-SCAN_PERIOD_S = 0.1
 
 
 def natural_key(path: Path) -> list:
@@ -36,27 +37,41 @@ def cloud_files(path: Path) -> list[Path]:
     return sorted((p for p in path.iterdir() if p.suffix.lower() in SUFFIXES), key=natural_key)
 
 
-def stamps_from_names(files: list[Path]) -> np.ndarray:
-    """Stamps (s) parsed from numeric file stems, or index * 0.1 when any does not parse.
+def stamps_from_names(files: list[Path], period: float = FRAME_PERIOD_S) -> np.ndarray:
+    """Stamps (s) parsed from numeric file stems, or index * ``period`` when any does not
+    parse.
 
     Zero-padded frame counters (``0000000000.pcd``, ``000001.bin``: small integers mostly
-    one apart) are frame indices, not seconds: index * 0.1 s as well."""
+    one apart) are frame numbers, not seconds: number * ``period``."""
+    return name_stamps(files, period)[0]
+
+
+def name_stamps(files: list[Path], period: float) -> tuple[np.ndarray, bool]:
+    """(stamps in s, True when they come from ``period``: the names are no stamps)."""
     try:
         values = np.array([float(f.stem) for f in files], dtype=np.float64)
     except ValueError:
-        return np.arange(len(files)) * SCAN_PERIOD_S
+        return np.arange(len(files)) * period, True
     if (
         values.size > 1
         and np.all(values == np.round(values))
         and values.max() < 1e6
         and np.median(np.diff(np.sort(values))) == 1.0
     ):
-        return values * SCAN_PERIOD_S
+        return values * period, True
     if values.size and values.min() > 1e15:
-        return values * 1e-9
+        return values * 1e-9, False
     if values.size and values.min() > 1e12:
-        return values * 1e-6
-    return values
+        return values * 1e-6, False
+    return values, False
+
+
+def period_note(period: float) -> str:
+    """The input note of scans stamped from their numbers (``source.frame_period``)."""
+    return (
+        f"the file names are frame numbers, not stamps: scans are {period:g} s apart "
+        f"({1 / period:g} Hz; --set source.frame_period=SECONDS for another rate)"
+    )
 
 
 def _open3d_columns(path: Path) -> dict[str, np.ndarray]:
@@ -133,23 +148,26 @@ def is_cloud_dir(path: Path) -> bool:
 
 
 class FolderSource:
-    """Scans of a folder of .pcd/.ply files; ``notes``: degradations met, once each."""
+    """Scans of a folder of .pcd/.ply files; ``notes``: degradations met, once each, and
+    how the scans were stamped when their names are no stamps. ``frame_period``: seconds
+    between numbered scans (``source.frame_period``)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, frame_period: float = FRAME_PERIOD_S) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
             raise InputError(f"{self.path}: not a folder")
         self.files = cloud_files(self.path)
         if not self.files:
             raise InputError(f"{self.path} contains no .pcd or .ply files")
-        self.stamps = stamps_from_names(self.files)
+        self.stamps, from_period = name_stamps(self.files, frame_period)
         self.topic: str | None = None
         self.description = f"point-cloud folder {self.path} ({len(self.files)} files)"
         self._notes = Notes()
+        self._stamp_notes = [period_note(frame_period)] if from_period else []
 
     @property
     def notes(self) -> list[str]:
-        return self._notes.lines
+        return [*self._notes.lines, *self._stamp_notes]
 
     def __len__(self) -> int:
         return len(self.files)

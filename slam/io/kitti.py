@@ -3,8 +3,8 @@
 The path is the sequence folder or the folder of ``.bin`` scans itself (``SEQ/velodyne``,
 or any folder of them). Optional files in the sequence folder (for a bare folder of scans:
 beside them, or in the parent when the folder is named ``velodyne``): ``times.txt`` (one
-stamp in s per scan; otherwise from numeric file names as for .pcd folders, 0.1 s apart
-for frame counters), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground
+stamp in s per scan; otherwise from numeric file names as for .pcd folders, ``frame_period``
+apart for frame counters), ``calib.txt`` (``Tr`` = T_cam0_velo) and ``poses.txt`` (ground
 truth, T_cam0start_cam0 as KITTI rows). KITTI gives no ring or per-point time: both are None.
 A .bin file that is empty, not a whole number of points or all NaN is yielded as a
 SkippedMessage and reading goes on; one that cannot be opened raises InputError.
@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.config import FRAME_PERIOD_S
 from slam.errors import InputError
-from slam.io.folders import natural_key, stamps_from_names
+from slam.io.folders import name_stamps, natural_key, period_note
 from slam.io.points import assemble_scan
 from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError, checked, skip
 from slam.io.trajectory import read_kitti
@@ -78,9 +79,10 @@ def read_calib_tr(path: str | Path) -> np.ndarray | None:
 
 
 class KittiSource:
-    """Scans of a KITTI odometry sequence folder, in file-name order."""
+    """Scans of a KITTI odometry sequence folder, in file-name order; ``frame_period``: seconds
+    between scans without ``times.txt`` (``source.frame_period``)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, frame_period: float = FRAME_PERIOD_S) -> None:
         given = Path(path)
         if not is_kitti_dir(given):
             raise InputError(
@@ -89,6 +91,7 @@ class KittiSource:
         scans_dir, self.path = kitti_layout(given)
         self.files = sorted(scans_dir.glob("*.bin"), key=natural_key)
         times = self.path / "times.txt"
+        self.notes: list[str] = []  # no optional fields to drop: only how scans are stamped
         if times.is_file():
             self.stamps = np.loadtxt(times, ndmin=1).astype(np.float64)
             if self.stamps.shape[0] != len(self.files):
@@ -97,11 +100,12 @@ class KittiSource:
                     f" in {scans_dir}: give the sequence a times.txt line per scan"
                 )
         else:
-            self.stamps = stamps_from_names(self.files)
+            self.stamps, from_period = name_stamps(self.files, frame_period)
+            if from_period:
+                self.notes.append(period_note(frame_period))
         self.topic: str | None = None
         what = "KITTI sequence" if scans_dir != given else "KITTI .bin folder"
         self.description = f"{what} {given} ({len(self.files)} scans)"
-        self.notes: list[str] = []  # KITTI has no optional fields to drop
 
     def __len__(self) -> int:
         return len(self.files)
@@ -119,17 +123,28 @@ class KittiSource:
             )  # fmt: skip
             yield checked(scan, len(pts), str(f), empty=EMPTY_FILE)
 
+    @property
+    def calib_file(self) -> Path:
+        """The sequence's ``calib.txt`` (it may not exist)."""
+        return self.path / "calib.txt"
+
+    def camera_to_lidar(self, poses: np.ndarray) -> np.ndarray | None:
+        """KITTI camera poses (N,4,4) (T_cam0start_cam0, as poses.txt) -> LiDAR poses
+        T_velo0_velo = Tr^-1 P Tr with the ``Tr`` of calib.txt; None without it."""
+        tr = read_calib_tr(self.calib_file) if self.calib_file.is_file() else None
+        if tr is None:
+            return None
+        return np.linalg.inv(tr)[None] @ np.asarray(poses, dtype=float) @ tr[None]
+
     def ground_truth(self) -> np.ndarray | None:
         """(N, 4, 4) ground-truth poses in the LiDAR frame (T_velo0_velo), None without poses.txt.
 
-        KITTI poses are camera poses; with calib.txt they are converted by Tr^-1 P Tr.
+        KITTI poses are camera poses; with calib.txt they are converted by Tr^-1 P Tr
+        (without it they are returned as they are).
         """
         poses_file = self.path / "poses.txt"
         if not poses_file.is_file():
             return None
         poses = read_kitti(poses_file)
-        calib = self.path / "calib.txt"
-        tr = read_calib_tr(calib) if calib.is_file() else None
-        if tr is None:
-            return poses
-        return np.linalg.inv(tr)[None] @ poses @ tr[None]
+        lidar = self.camera_to_lidar(poses)
+        return poses if lidar is None else lidar

@@ -44,12 +44,16 @@ class ScanSource(Protocol):
     def __len__(self) -> int: ...
 
 
-def open_source(path: str | Path, topic: str | None = None) -> ScanSource:
+def open_source(
+    path: str | Path, topic: str | None = None, frame_period: float | None = None
+) -> ScanSource:
     """The reader for ``path``: bag (ROS1/ROS2 db3/mcap), KITTI folder, PCD/PLY folder or
     CARMEN log.
 
-    ``topic`` only applies to bags (ignored otherwise). Raises InputError for paths of no
-    accepted kind and TopicError when the topic is missing or ambiguous.
+    ``topic`` only applies to bags, ``frame_period`` (s between numbered scans,
+    ``source.frame_period``; None: its default) to folders (ignored otherwise). Raises
+    InputError for paths of no accepted kind and TopicError when the topic is missing or
+    ambiguous.
     """
     from slam.io.bags import BagSource, is_bag_path
     from slam.io.carmen import CarmenSource, is_carmen_path
@@ -63,8 +67,9 @@ def open_source(path: str | Path, topic: str | None = None) -> ScanSource:
         return BagSource(path, topic)
     if is_carmen_path(path):
         return CarmenSource(path)
+    period = {} if frame_period is None else {"frame_period": frame_period}
     if is_kitti_dir(path):
-        return KittiSource(path)
+        return KittiSource(path, **period)
     if is_cloud_dir(path):
-        return FolderSource(path)
+        return FolderSource(path, **period)
     raise InputError(f"cannot read {path}: expected {ACCEPTED}")
