@@ -22,7 +22,11 @@ def add_parser(sub: Any) -> None:
     q.add_argument("bag")
     q.add_argument("--config", default=None, help="config name in configs/ or a YAML path")
     q.add_argument("--no-loop", action="store_true", help="switch loop closure off")
-    q.add_argument("--gt", help="ground truth (TUM) to evaluate against")
+    q.add_argument(
+        "--gt",
+        help="ground truth to evaluate against: TUM, or KITTI rows (a KITTI sequence's "
+        "poses are taken to the LiDAR frame with its calib.txt)",
+    )
     q.add_argument(
         "--viz",
         nargs="?",
