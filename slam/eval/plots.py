@@ -261,7 +261,7 @@ def overlay_figure(results: Mapping[str, EvalResult], plane: str = "xy"):
     first = next(iter(results.values()))
     plot.traj(ax, mode, _traj(first.stamps, first.gt_poses), label=GT_LABEL, **GT_STYLE)
     named = {
-        f"{name} (RMSE {_length(res.ape_trans['rmse'])})": _traj(res.stamps, res.est_poses)
+        f"{name} (RMSE {res.ape_trans['rmse']:.3f} m)": _traj(res.stamps, res.est_poses)
         for name, res in results.items()
     }
     plot.trajectories(ax, named, mode, title=f"Trajectories ({plane})")
