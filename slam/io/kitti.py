@@ -19,7 +19,7 @@ import numpy as np
 
 from slam.errors import InputError
 from slam.io.folders import natural_key, stamps_from_names
-from slam.io.points import assemble_scan
+from slam.io.points import Notes, assemble_scan
 from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError, checked, skip
 from slam.io.trajectory import read_kitti
 from slam.types import Scan, SkippedMessage
@@ -101,7 +101,11 @@ class KittiSource:
         self.topic: str | None = None
         what = "KITTI sequence" if scans_dir != given else "KITTI .bin folder"
         self.description = f"{what} {given} ({len(self.files)} scans)"
-        self.notes: list[str] = []  # KITTI has no optional fields to drop
+        self._notes = Notes()  # points dropped for absurd coordinates
+
+    @property
+    def notes(self) -> list[str]:
+        return self._notes.lines
 
     def __len__(self) -> int:
         return len(self.files)
@@ -110,13 +114,13 @@ class KittiSource:
         for i, f in enumerate(self.files):
             try:
                 pts = read_bin(f)
+                scan = assemble_scan(
+                    pts[:, 0], pts[:, 1], pts[:, 2], stamp=float(self.stamps[i]), index=i,
+                    intensity=pts[:, 3], notes=self._notes,
+                )  # fmt: skip
             except FrameError as exc:
                 yield skip(i, exc, str(f))
                 continue
-            scan = assemble_scan(
-                pts[:, 0], pts[:, 1], pts[:, 2], stamp=float(self.stamps[i]), index=i,
-                intensity=pts[:, 3],
-            )  # fmt: skip
             yield checked(scan, len(pts), str(f), empty=EMPTY_FILE)
 
     def ground_truth(self) -> np.ndarray | None:
