@@ -14,6 +14,7 @@ from slam.features.loam import FeatureConfig, extract_features
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
+from slam.odometry.config import check_positive
 from slam.registration.feature_icp import FeatureIcpConfig, MapTreeCache, feature_icp_align
 from slam.registration.ground_plane import (
     FixedNormals,
@@ -73,6 +74,8 @@ class FloamConfig(CommonConfig):
     ground_edge_band: float = 0.1
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive(self, "frontend", ("edge_voxel", "plane_voxel"))
         if self.max_registration_points < 0:
             raise ConfigError("max_registration_points must be >= 0 (0 = no cap)")
         if self.ground_edge_band < 0:

@@ -20,6 +20,7 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
+from slam.odometry.config import check_positive
 from slam.preprocess.sor import SorConfig
 from slam.registration import kernels
 from slam.registration.covariances import add_beam_angle_noise
@@ -146,6 +147,8 @@ class ImprovedFloamConfig(CommonConfig):
     min_ring_columns: int = 1024
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive(self, "frontend", ("edge_voxel", "plane_voxel", "covariance_voxel"))
         self.strategies()  # the choices are checked here, at load
         if self.max_registration_points < 0 or self.coarse_points < 0:
             raise ConfigError("max_registration_points and coarse_points must be >= 0 (0 = no cap)")

@@ -25,6 +25,7 @@ from slam.features.range_image_segmentation import Segmentation, SegmentationCon
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
+from slam.odometry.config import check_positive
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
 from slam.registration.ground_plane import (
     FixedNormals,
@@ -147,6 +148,8 @@ class LegoLoamConfig(CommonConfig):
     ground_plane: GroundPlaneConfig = field(default_factory=_ground_plane)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive(self, "frontend", ("edge_voxel", "plane_voxel", "ground_voxel"))
         if self.max_surface_points < 0:
             raise ConfigError("max_surface_points must be >= 0 (0 = no cap)")
 

@@ -7,6 +7,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from slam.errors import ConfigError
 from slam.types import Odometry, Scan
 
 
@@ -28,6 +29,15 @@ class KeyframeConfig:
 
     translation: float = 1.0
     rotation_deg: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name, unit in (("translation", "m"), ("rotation_deg", "deg")):
+            value = getattr(self, name)
+            if not value > 0:
+                raise ConfigError(
+                    f"frontend.keyframe.{name} must be > 0 {unit} (a keyframe after this "
+                    f"much motion), got {value}"
+                )
 
 
 def is_new_keyframe(T_prevkf_current: np.ndarray, cfg: KeyframeConfig) -> bool:

@@ -326,3 +326,42 @@ def test_the_clock_of_the_stamps(tmp_path):
         list(src)
     assert "neither clock can order the scans" in str(e.value)
     assert "--set source.stamps=header" in str(e.value)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_absurd_coordinates_are_dropped_and_a_mostly_absurd_message_skipped(tmp_path, fmt, caplog):
+    """A few points at 3e38 m or 1e5 m (damaged bytes, no lidar returns) are dropped from
+    their scan, noted once; a message whose points are mostly such is skipped as "absurd
+    coordinates", counted by the stream with one warning, and the scans after it are read."""
+    from slam.config import SourceConfig
+    from slam.io.stream import ScanStream
+
+    path = bag_name(tmp_path, fmt)
+    writer, ts, serialize = open_raw(path, fmt)
+    ref = scans(5, 40)
+    few, most = ref[1].xyz.copy(), ref[3].xyz.copy()
+    few[[3, 17, 30]] = [[3.0e38, 1.0, 2.0], [1.0, -3.4e38, 0.0], [0.5, 0.5, 1.0e5]]
+    most[:30, 2] = 3.0e38
+    with writer:
+        c = writer.add_connection("/velodyne_points", PC2, typestore=ts)
+        for i, s in enumerate(ref):
+            if i in (1, 3):
+                s = Scan(s.stamp, few if i == 1 else most, s.intensity, s.ring, s.time, i)
+            writer.write(c, 10**9 * (i + 1), serialize(encode_pointcloud2(s, ts), PC2))
+    src = open_source(path)
+    got = list(src)
+    reasons = [s.reason if isinstance(s, SkippedMessage) else "scan" for s in got]
+    assert reasons == ["scan", "scan", "scan", "absurd coordinates", "scan"]
+    assert "30 of its 40 points" in got[3].detail and "message 3" in got[3].detail
+    keep = np.setdiff1d(np.arange(40), [3, 17, 30])
+    np.testing.assert_allclose(got[1].xyz, ref[1].xyz[keep], atol=4e-6)
+    np.testing.assert_array_equal(got[1].ring, ref[1].ring[keep])
+    assert len(got[1]) == 37 and len(got[0]) == len(got[4]) == 40
+    assert src.notes == [
+        "points with a coordinate beyond 10000 m (no lidar's returns: damaged data) dropped"
+    ]
+    stream = ScanStream(open_source(path), SourceConfig(beam_scans=0))
+    kept = [s for s in stream.items() if isinstance(s, Scan)]
+    assert [s.index for s in kept] == [0, 1, 2, 4]
+    assert dict(stream.stats.skipped) == {"absurd coordinates": 1}
+    assert sum("absurd coordinates" in r.getMessage() for r in caplog.records) == 1

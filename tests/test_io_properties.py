@@ -1,7 +1,8 @@
 """Property-based tests (hypothesis) of the readers: PointCloud2 decoder, PCD folders, KITTI.
 
 For any valid input (field layout, offsets, padding, endianness, NaN/inf coordinates,
-per-point time in any unit) the decoded points equal the encoded ones; for any damaged
+per-point time in any unit) the decoded points equal the encoded ones within +-1e4 m (a
+cloud whose finite points are mostly beyond is a damaged message); for any damaged
 input (truncated, garbage, wrong sizes) only the project's typed errors escape the decoder
 and the readers yield a SkippedMessage instead of raising. 500 examples per property.
 """
@@ -13,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -142,12 +144,20 @@ def clouds(draw):
     return msg, cols, time_code
 
 
-def check_scan(out: Scan, cols: dict, *, time_code: str | None, stamp: float) -> None:
-    """``out`` holds exactly the finite points of ``cols`` with their attributes."""
+def expected_points(cols: dict) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(xyz (N, 3) of ``cols``, the rows a reader keeps, damaged?): kept rows are finite and
+    within +-1e4 m; a cloud is damaged when more than half its finite rows are not kept."""
     xyz = np.column_stack([cols[c].astype(np.float64) for c in "xyz"]).reshape(-1, 3)
-    keep = np.isfinite(xyz).all(axis=1)
+    finite = np.isfinite(xyz).all(axis=1)
+    keep = finite & (np.abs(xyz) <= 1e4).all(axis=1)
+    return xyz, keep, 2 * (finite.sum() - keep.sum()) > finite.sum()
+
+
+def check_scan(out: Scan, cols: dict, *, time_code: str | None, stamp: float) -> None:
+    """``out`` holds exactly the valid points of ``cols`` with their attributes."""
+    xyz, keep, _ = expected_points(cols)
     np.testing.assert_array_equal(out.xyz, xyz[keep])
-    assert out.xyz.dtype == np.float64 and np.isfinite(out.xyz).all()
+    assert out.xyz.dtype == np.float64 and (np.abs(out.xyz) <= 1e4).all()
     if "i" in cols:
         with np.errstate(over="ignore"):  # float64 beyond float32: inf on both sides
             np.testing.assert_array_equal(out.intensity, cols["i"][keep].astype(np.float32))
@@ -185,6 +195,11 @@ def check_scan(out: Scan, cols: dict, *, time_code: str | None, stamp: float) ->
 @given(clouds())
 def test_pointcloud2_decodes_what_was_encoded(case):
     msg, cols, time_code = case
+    if expected_points(cols)[2]:
+        with pytest.raises(FrameError, match="beyond 10000 m") as err:
+            decode_pointcloud2(msg, index=3, notes=Notes())
+        assert err.value.reason == "absurd coordinates"
+        return
     out = decode_pointcloud2(msg, index=3, notes=Notes())
     assert out.index == 3
     check_scan(out, cols, time_code=time_code, stamp=STAMP)
@@ -224,7 +239,7 @@ def test_pointcloud2_damage_raises_only_typed_errors(msg):
         assert isinstance(exc, InputError) and exc.reason and str(exc)
         return
     n = len(out)
-    assert out.xyz.shape == (n, 3) and np.isfinite(out.xyz).all()
+    assert out.xyz.shape == (n, 3) and (np.abs(out.xyz) <= 1e4).all()
     for col in (out.intensity, out.ring, out.time):
         assert col is None or col.shape == (n,)
     assert out.time is None or (n == 0 or out.time.min() == 0.0)
@@ -270,9 +285,11 @@ def test_pcd_folder_reads_what_was_written(case):
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "12.5.pcd").write_bytes(buf)
         (item,) = list(FolderSource(tmp))
-    xyz = np.column_stack([cols[c].astype(np.float64) for c in "xyz"]).reshape(-1, 3)
-    n_finite = int(np.isfinite(xyz).all(axis=1).sum())
-    if n_finite == 0:
+    _, keep, damaged = expected_points(cols)
+    if damaged:
+        assert isinstance(item, SkippedMessage) and item.reason == "absurd coordinates"
+        return
+    if not keep.any():
         assert isinstance(item, SkippedMessage)
         assert item.reason == ("empty file" if n == 0 else "no finite points")
         return
@@ -306,7 +323,7 @@ def test_pcd_folder_damage_costs_one_file(buf):
     if isinstance(item, SkippedMessage):
         assert item.index == 0 and item.reason and "0.pcd" in item.detail
         return
-    assert len(item) > 0 and np.isfinite(item.xyz).all()
+    assert len(item) > 0 and (np.abs(item.xyz) <= 1e4).all()
     for col in (item.intensity, item.ring, item.time):
         assert col is None or col.shape == (len(item),)
 
@@ -319,16 +336,18 @@ def test_pcd_folder_damage_costs_one_file(buf):
     hnp.arrays(np.float32, st.tuples(st.integers(0, 20), st.just(4)), elements=st.floats(width=32)),
     st.binary(max_size=15),
 )
-def test_kitti_reads_finite_points_or_skips(points, tail):
+def test_kitti_reads_valid_points_or_skips(points, tail):
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "velodyne").mkdir()
         (Path(tmp) / "velodyne" / "000000.bin").write_bytes(points.astype("<f4").tobytes() + tail)
         (item,) = list(KittiSource(tmp))
-    keep = np.isfinite(points[:, :3]).all(axis=1)
+    _, keep, damaged = expected_points({c: points[:, k] for k, c in enumerate("xyz")})
     if tail:
         assert isinstance(item, SkippedMessage) and item.reason == "corrupt file"
     elif len(points) == 0:
         assert isinstance(item, SkippedMessage) and item.reason == "empty file"
+    elif damaged:
+        assert isinstance(item, SkippedMessage) and item.reason == "absurd coordinates"
     elif not keep.any():
         assert isinstance(item, SkippedMessage) and item.reason == "no finite points"
     else:

@@ -321,3 +321,91 @@ def test_sor_mode_and_bands_are_checked():
         with pytest.raises(ConfigError):
             SorConfig(**bad)
     assert SorConfig(band_edges=[15, 30]).band_edges == (15.0, 30.0)  # a YAML list
+
+
+def _grid_and_a_stray(spacing=0.005, stray=(5.0, 0.0, -12.0)):
+    """A 60 x 60 grid of ``spacing`` (m) on the plane x = 5 m and one stray point 12 m from
+    it in the same range band: exp(-12 / ~0.008) underflows, every weight of its row is 0."""
+    g = np.arange(60) * spacing
+    Y, Z = np.meshgrid(g, g)
+    grid = np.c_[np.full(Y.size, 5.0), Y.ravel(), Z.ravel()]
+    return np.vstack([grid, stray])
+
+
+def test_a_row_whose_weights_all_underflow_is_an_outlier_not_a_division_by_zero():
+    """The stray point's weighted mean distance (6) is its nearest distance (the weights
+    relative to the nearest neighbour's), the same in the numba kernels and the numpy
+    reference; the grid is kept, the stray removed (was ZeroDivisionError in numba)."""
+    from slam.preprocess.sor import knn_distances, weighted_sor_terms, weighted_sor_terms_fast
+    from slam.preprocess.sor_kernels import weighted_sor_kernel
+
+    xyz = _grid_and_a_stray()
+    dist = knn_distances(xyz, 10)
+    assert np.exp(-dist[-1] / dist.mean()).sum() == 0.0  # the case: every weight underflows
+    ref = weighted_sor_terms(dist)
+    fast = weighted_sor_terms_fast(dist)
+    plain = weighted_sor_kernel(np.ascontiguousarray(dist), 1.0, 1e-5, 1.0)
+    nearest = dist[-1, 0]
+    assert nearest == pytest.approx(12.0)
+    for d in (ref.d, fast.d, plain[0]):
+        assert np.isfinite(d).all() and nearest <= d[-1] < dist[-1, -1]
+        np.testing.assert_allclose(d, ref.d, rtol=1e-12)
+    for cfg in (SorConfig(), SorConfig(mode="paper")):
+        keep = apply_sor(xyz, cfg)
+        assert not keep[-1] and keep[:-1].all()
+
+
+@pytest.mark.parametrize(
+    "dist",
+    [
+        np.zeros((0, 10)),  # no points
+        np.zeros((5, 0)),  # no neighbours
+        np.array([[1.0, 2.0, 3.0]]),  # one point
+        np.zeros((50, 10)),  # identical points
+        np.array([[1.0, 2.0], [1.0, 1e120], [1.0, 3.0]]),  # radius^3 overflows: density 0
+    ],
+    ids=["no-points", "k0", "one-point", "identical", "density0"],
+)
+def test_sor_terms_of_degenerate_neighbourhoods_keep_the_points(dist):
+    """Degenerate distance tables give finite terms that keep every point, the same from
+    the numba kernels and the numpy reference (all but the identical points raised: a
+    ZeroDivisionError in numba, an IndexError without neighbours)."""
+    from slam.preprocess.sor import weighted_sor_terms, weighted_sor_terms_fast
+    from slam.preprocess.sor_kernels import weighted_sor_kernel
+
+    ref = weighted_sor_terms(dist)
+    n = len(dist)
+    for d, mu, sigma, rho, theta in (
+        (ref.d, ref.mu, ref.sigma, ref.rho, ref.theta),
+        tuple(weighted_sor_kernel(np.ascontiguousarray(dist), 1.0, 1e-5, 1.0)),
+        tuple(vars(weighted_sor_terms_fast(dist)).values()),
+    ):
+        assert d.shape == rho.shape == theta.shape == (n,)
+        assert np.isfinite([mu, sigma]).all() and sigma >= 1e-5
+        assert np.isfinite(d).all() and np.isfinite(theta).all()
+        assert (d <= theta).all()
+        np.testing.assert_allclose(d, ref.d, rtol=1e-12)
+        np.testing.assert_allclose(theta, ref.theta, rtol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["weighted", "classic"])
+@pytest.mark.parametrize(
+    "xyz",
+    [
+        np.zeros((0, 3)),
+        np.array([[1.0, 2.0, 3.0]]),
+        np.tile([[4.0, 1.0, 0.5]], (40, 1)),  # one point 40 times
+        np.vstack([_grid_and_a_stray(), [[1e150, 0.0, 0.0]]]),  # distances that overflow
+    ],
+    ids=["empty", "one", "identical", "huge"],
+)
+def test_apply_sor_on_degenerate_clouds_returns_a_mask(xyz, method):
+    """Any finite cloud gives a keep-mask: empty, a single point and one point repeated
+    are kept whole; a point 1e150 m away is removed and the grid kept."""
+    for mode in ("banded", "paper"):
+        keep = apply_sor(xyz, SorConfig(method=method, mode=mode))
+        assert keep.shape == (len(xyz),) and keep.dtype == bool
+        if len(xyz) < 100:
+            assert keep.all()
+        else:
+            assert not keep[-1] and keep[:3600].all()

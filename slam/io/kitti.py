@@ -20,7 +20,7 @@ import numpy as np
 from slam.config import FRAME_PERIOD_S
 from slam.errors import InputError
 from slam.io.folders import name_stamps, natural_key, period_note
-from slam.io.points import assemble_scan
+from slam.io.points import Notes, assemble_scan
 from slam.io.skips import CORRUPT_FILE, EMPTY_FILE, FrameError, checked, skip
 from slam.io.trajectory import read_kitti
 from slam.types import Scan, SkippedMessage
@@ -91,7 +91,8 @@ class KittiSource:
         scans_dir, self.path = kitti_layout(given)
         self.files = sorted(scans_dir.glob("*.bin"), key=natural_key)
         times = self.path / "times.txt"
-        self.notes: list[str] = []  # no optional fields to drop: only how scans are stamped
+        self._notes = Notes()  # points dropped for absurd coordinates
+        self._stamp_notes: list[str] = []  # how scans are stamped without times.txt
         if times.is_file():
             self.stamps = np.loadtxt(times, ndmin=1).astype(np.float64)
             if self.stamps.shape[0] != len(self.files):
@@ -102,10 +103,14 @@ class KittiSource:
         else:
             self.stamps, from_period = name_stamps(self.files, frame_period)
             if from_period:
-                self.notes.append(period_note(frame_period))
+                self._stamp_notes.append(period_note(frame_period))
         self.topic: str | None = None
         what = "KITTI sequence" if scans_dir != given else "KITTI .bin folder"
         self.description = f"{what} {given} ({len(self.files)} scans)"
+
+    @property
+    def notes(self) -> list[str]:
+        return [*self._notes.lines, *self._stamp_notes]
 
     def __len__(self) -> int:
         return len(self.files)
@@ -114,13 +119,13 @@ class KittiSource:
         for i, f in enumerate(self.files):
             try:
                 pts = read_bin(f)
+                scan = assemble_scan(
+                    pts[:, 0], pts[:, 1], pts[:, 2], stamp=float(self.stamps[i]), index=i,
+                    intensity=pts[:, 3], notes=self._notes,
+                )  # fmt: skip
             except FrameError as exc:
                 yield skip(i, exc, str(f))
                 continue
-            scan = assemble_scan(
-                pts[:, 0], pts[:, 1], pts[:, 2], stamp=float(self.stamps[i]), index=i,
-                intensity=pts[:, 3],
-            )  # fmt: skip
             yield checked(scan, len(pts), str(f), empty=EMPTY_FILE)
 
     @property

@@ -2,8 +2,8 @@
 units, ring range, and :func:`assemble_scan` that turns decoded columns into a Scan.
 
 PointCloud2 messages, PCD/PLY files and KITTI .bin files all go through here, so a NaN
-coordinate, a time field in microseconds or a uint16 ring of 40000 are treated the same
-whatever the container.
+coordinate, a coordinate of 3e38 m, a time field in microseconds or a uint16 ring of 40000
+are treated the same whatever the container.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam.io.skips import ABSURD_POINTS, FrameError
 from slam.types import Scan
 
 INTENSITY_NAMES = ("intensity", "reflectivity", "i")
@@ -29,10 +30,15 @@ ABSOLUTE_MIN_S = 1.0e6
 SCALES = (1.0, 1e-3, 1e-6, 1e-9)
 _UNITS = {1.0: "s", 1e-3: "ms", 1e-6: "us", 1e-9: "ns"}
 _INT16 = np.iinfo(np.int16)
+# A scan is in the sensor frame and no lidar returns from beyond ~2 km: a coordinate above
+# this (m) is garbage (float32 max, uninitialised memory), not a return.
+MAX_COORD_M = 1.0e4
+# More than this fraction of a cloud's finite points beyond MAX_COORD_M: a damaged message.
+MAX_ABSURD_FRACTION = 0.5
 
 
 def finite_mask(*columns: np.ndarray) -> np.ndarray:
-    """Rows where every column is finite: THE point validator of ``slam.io``.
+    """Rows where every column is finite (a scan's points: ``point_mask``).
 
     Each column is (N,) or (N, k); (N, 3) xyz or three (N,) x, y, z columns give the same
     mask (per-column is ~4x faster on structured records than ``isfinite(xyz).all(1)``).
@@ -49,6 +55,45 @@ def finite_mask(*columns: np.ndarray) -> np.ndarray:
     if keep is None:
         raise ValueError("finite_mask needs at least one column")
     return keep
+
+
+def point_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Rows whose x, y, z (N,) are finite and within +-``MAX_COORD_M`` m: THE validator of
+    a scan's points (no return: NaN/inf; garbage: a coordinate far beyond any lidar's
+    reach). One comparison per column, about the cost of ``finite_mask``."""
+    masks = []
+    for col in (x, y, z):
+        if col.dtype.kind == "f":
+            masks.append(np.abs(col) <= MAX_COORD_M)  # NaN and inf compare False
+        else:  # abs() of an integer column's minimum wraps
+            masks.append((col <= MAX_COORD_M) & (col >= -MAX_COORD_M))
+    keep = masks[0]
+    keep &= masks[1]
+    keep &= masks[2]
+    return keep
+
+
+def _absurd_points(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, keep: np.ndarray, notes: Notes | None
+) -> None:
+    """Note points dropped for a coordinate beyond ``MAX_COORD_M``; raise FrameError when
+    they are most of the cloud's finite points (a damaged message, not a few stray bytes)."""
+    n_kept = int(np.count_nonzero(keep))
+    n_finite = int(np.count_nonzero(finite_mask(x, y, z)))
+    absurd = n_finite - n_kept
+    if not absurd:
+        return
+    if absurd > MAX_ABSURD_FRACTION * n_finite:
+        raise FrameError(
+            ABSURD_POINTS,
+            f"{absurd} of its {n_finite} points with finite coordinates lie beyond "
+            f"{MAX_COORD_M:g} m, where no lidar has returns: damaged data",
+        )
+    if notes is not None:
+        notes.add(
+            f"points with a coordinate beyond {MAX_COORD_M:g} m (no lidar's returns: "
+            f"damaged data) dropped"
+        )
 
 
 def finite_points(xyz: np.ndarray) -> np.ndarray:
@@ -170,15 +215,20 @@ def assemble_scan(
     time: tuple[str, np.ndarray] | None = None,
     notes: Notes | None = None,
 ) -> Scan:
-    """Decoded columns (N,) -> Scan with finite points only (see ``slam.types.Scan``).
+    """Decoded columns (N,) -> Scan with valid points only (``point_mask``: finite, within
+    ``MAX_COORD_M`` m; see ``slam.types.Scan``).
 
-    ``ring``/``time`` are (field name, values). A ring that is not int16 and times that are
-    not finite on the kept points are dropped from the scan, with a line in ``notes``;
-    per-point time is converted by :func:`guess_time_unit` (unit from all points' finite
-    times) and :func:`normalise_time` (on the kept points).
+    Points beyond ``MAX_COORD_M`` are dropped with a line in ``notes``, and FrameError
+    (``ABSURD_POINTS``) raised when they are most of the finite points: the readers skip
+    such a message. ``ring``/``time`` are (field name, values). A ring that is not int16
+    and times that are not finite on the kept points are dropped from the scan, with a line
+    in ``notes``; per-point time is converted by :func:`guess_time_unit` (unit from all
+    points' finite times) and :func:`normalise_time` (on the kept points).
     """
-    keep = finite_mask(x, y, z)
+    keep = point_mask(x, y, z)
     all_ok = bool(keep.all())
+    if not all_ok:
+        _absurd_points(x, y, z, keep, notes)
     xyz = np.empty((keep.shape[0] if all_ok else int(keep.sum()), 3), dtype=np.float64)
     for k, col in enumerate((x, y, z)):
         xyz[:, k] = col if all_ok else col[keep]

@@ -12,6 +12,7 @@ CORRUPT_FILE = "corrupt file"
 EMPTY_MESSAGE = "empty message"
 EMPTY_FILE = "empty file"
 NO_FINITE_POINTS = "no finite points"
+ABSURD_POINTS = "absurd coordinates"
 BAD_DATATYPE = "bad field datatype"
 NO_XYZ = "no x/y/z fields"
 

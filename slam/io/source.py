@@ -24,9 +24,10 @@ class ScanSource(Protocol):
 
     Each item is a Scan, or a SkippedMessage(index, reason, detail) for a message/file that
     cannot become one (corrupt buffer, unknown datatype on x/y/z, empty file, no finite
-    point): ``reason`` is a short category to count (see ``slam.io.skips``), ``detail`` the
-    full explanation, and iteration goes on with the next item. A readable scan is never
-    empty. An unreadable OPTIONAL field (intensity, ring, time: unknown datatype, ring
+    point, mostly points beyond ``slam.io.points.MAX_COORD_M``): ``reason`` is a short
+    category to count (see ``slam.io.skips``), ``detail`` the full explanation, and
+    iteration goes on with the next item. A readable scan is never empty. An unreadable
+    OPTIONAL field (intensity, ring, time: unknown datatype, ring
     values beyond int16, non-finite times) is dropped from the scan and the scan kept;
     ``notes`` lists each such degradation once. Only an input that cannot be read at all
     (missing file, bag that cannot be opened, a truncated bag whose record iterator fails)

@@ -127,6 +127,11 @@ class VerifyParams:
         for name in ("voxel", "inlier_distance"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("min_sigma_trans", "min_sigma_rot_deg"):  # the information floors
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not self.max_sigma_ratio >= 1:
+            raise ValueError(f"max_sigma_ratio must be >= 1, got {self.max_sigma_ratio}")
         if self.neighbours < 0:
             raise ValueError(f"neighbours must be >= 0, got {self.neighbours}")
         if not 0.0 <= self.min_overlap <= 1.0:

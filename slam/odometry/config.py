@@ -4,11 +4,49 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from slam.errors import ConfigError
 from slam.frontend import KeyframeConfig
 from slam.odometry.layout_time import LayoutTimeConfig
 from slam.registration.ambiguity import OdometryAmbiguityConfig
 from slam.registration.information import InformationConfig
 from slam.registration.plausibility import PlausibilityConfig
+
+# CommonConfig fields that are counts, distances (m), angles (deg), durations (s), speeds or
+# rates: a negative value has no meaning (0 switches several of them off)
+NON_NEGATIVE = (
+    "min_points",
+    "drift_translation",
+    "drift_rotation_deg_per_m",
+    "max_lost_seconds",
+    "fitness_relax_seconds",
+    "max_extrapolation_seconds",
+    "gap_hypotheses_after",
+    "gap_hypothesis_step",
+    "gap_acceleration",
+    "start_max_speed",
+    "start_speed_step",
+    "start_max_shift",
+    "start_min_shift",
+    "start_min_turn_deg",
+    "map_min_translation",
+    "map_min_rotation_deg",
+)
+
+
+def check_positive(cfg: object, section: str, names: tuple[str, ...]) -> None:
+    """ConfigError naming ``section.name``, its value and the rule when one is not > 0."""
+    for name in names:
+        value = getattr(cfg, name)
+        if not value > 0:
+            raise ConfigError(f"{section}.{name} must be > 0, got {value}")
+
+
+def check_non_negative(cfg: object, section: str, names: tuple[str, ...]) -> None:
+    """ConfigError naming ``section.name``, its value and the rule when one is negative."""
+    for name in names:
+        value = getattr(cfg, name)
+        if not value >= 0:
+            raise ConfigError(f"{section}.{name} must be >= 0, got {value}")
 
 
 @dataclass
@@ -78,3 +116,17 @@ class CommonConfig:
     # beam-by-beam clouds without a time field: deskew with times from the azimuth only
     # once registrations at speed show they are not motion-compensated
     layout_time: LayoutTimeConfig = field(default_factory=LayoutTimeConfig)
+
+    def __post_init__(self) -> None:
+        if not (self.min_range >= 0 and self.max_range > 0 and self.min_range < self.max_range):
+            raise ConfigError(
+                f"frontend.min_range ({self.min_range} m) must be >= 0 and below "
+                f"frontend.max_range ({self.max_range} m): the crop keeps the points between"
+            )
+        check_positive(self, "frontend", ("cloud_voxel", "recovery_correspondence_factor"))
+        check_non_negative(self, "frontend", NON_NEGATIVE)
+        if not 0 <= self.deskew_smoothing < 1:
+            raise ConfigError(
+                f"frontend.deskew_smoothing must be in [0, 1) (the weight of the past in the "
+                f"filtered deskew twist), got {self.deskew_smoothing}"
+            )

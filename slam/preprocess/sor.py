@@ -229,15 +229,33 @@ class SorTerms:
 def weighted_sor_terms(
     dist: np.ndarray, alpha: float = 1.0, delta: float = 1e-5, max_density_ratio: float = 1.0
 ) -> SorTerms:
-    """Eqs. (4)-(9) of paper 000 from the (N, k) ascending neighbour distances (m), N >= 2."""
+    """Eqs. (4)-(9) of paper 000 from the (N, k) ascending neighbour distances (m).
+
+    Degenerate input as in ``slam.preprocess.sor_kernels``: no rows or k = 0 keep every
+    point, one row has sigma = delta, a row whose weights all underflow takes them relative
+    to its nearest neighbour (the same eq. (6)), a density of 0 the clamped ratio."""
+    n, k = dist.shape
+    if n == 0 or k == 0:
+        theta = np.full(n, alpha * delta * (1.0 + max_density_ratio))
+        return SorTerms(np.zeros(n), 0.0, delta, np.zeros(n), theta)
     d_avg = max(float(dist.mean()), 1e-12)  # eq. (5)
     w = np.exp(-dist / d_avg)  # eq. (4)
-    d = (w * dist).sum(axis=1) / w.sum(axis=1)  # eq. (6)
+    sw = w.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = (w * dist).sum(axis=1) / sw  # eq. (6)
+    under = ~(sw > 0.0)  # every weight of the row underflowed
+    if under.any():
+        rel = np.exp(-(dist[under] - dist[under, :1]) / d_avg)
+        d[under] = (rel * dist[under]).sum(axis=1) / rel.sum(axis=1)
     mu = float(d.mean())  # eq. (8)
-    sigma = float(d.std(ddof=1)) + delta  # eq. (9)
+    sigma = (float(d.std(ddof=1)) if n > 1 else 0.0) + delta  # eq. (9)
     radius = np.maximum(dist[:, -1], 1e-9)
-    rho = dist.shape[1] / (4.0 / 3.0 * np.pi * radius**3)
-    ratio = np.minimum(rho.mean() / rho, max_density_ratio)
+    with np.errstate(over="ignore"):
+        rho = k / (4.0 / 3.0 * np.pi * radius**3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(
+            rho > 0.0, np.minimum(rho.mean() / rho, max_density_ratio), max_density_ratio
+        )
     theta = mu + alpha * sigma * (1.0 + ratio)  # eq. (7)
     return SorTerms(d, mu, sigma, rho, theta)
 

@@ -1,6 +1,11 @@
 """Numba kernel of the weighted SOR statistics (paper 000, eqs. (4)-(9)): one fused pass
 instead of numpy's temporaries; equal to ``slam.preprocess.sor.weighted_sor_terms`` (the
-readable reference), tested in tests/test_sor.py."""
+readable reference), tested in tests/test_sor.py.
+
+Degenerate input never divides by zero: no rows or no neighbours (every point kept), one
+row (sigma = delta), a row whose weights all underflow (``shifted_row_mean``) and a
+neighbourhood too wide for its volume to be finite (density 0: the clamped ratio).
+"""
 
 from __future__ import annotations
 
@@ -9,12 +14,52 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
+def shifted_row_mean(dist: np.ndarray, i: int, d_avg: float) -> float:
+    """Eq. (6) for row i with every weight scaled by exp(dist[i, 0] / d_avg): the same value,
+    but the nearest neighbour's weight is 1, so it holds when all of exp(-dist / d_avg)
+    underflow to 0 (a point tens of metres from its neighbours in a band of centimetre
+    spacing): the weighted mean then tends to the nearest distance."""
+    sw = 0.0
+    swd = 0.0
+    for t in range(dist.shape[1]):
+        w = np.exp(-(dist[i, t] - dist[i, 0]) / d_avg)
+        sw += w
+        swd += w * dist[i, t]
+    return swd / sw if sw > 0.0 else dist[i, 0]
+
+
+@njit(cache=True, nogil=True)
+def no_neighbours(
+    n: int, alpha: float, delta: float, max_density_ratio: float
+) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """The terms when there is nothing to judge (no rows or k = 0): d 0, every point kept."""
+    return (
+        np.zeros(n),
+        0.0,
+        delta,
+        np.zeros(n),
+        np.full(n, alpha * delta * (1.0 + max_density_ratio)),
+    )
+
+
+@njit(cache=True, nogil=True)
+def density_ratio(rho_avg: float, rho: float, max_density_ratio: float) -> float:
+    """min(rho_avg / rho, max_density_ratio) of eq. (7); the clamp when rho is 0 (a
+    neighbourhood radius whose cube overflows) or not a number."""
+    if rho > 0.0:
+        return min(rho_avg / rho, max_density_ratio)
+    return max_density_ratio
+
+
+@njit(cache=True, nogil=True)
 def weighted_sor_kernel(
     dist: np.ndarray, alpha: float, delta: float, max_density_ratio: float
 ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
     """(d, mu, sigma, rho, theta) of eqs. (4)-(9) from the (N, k) ascending neighbour
-    distances (m), N >= 2; see ``weighted_sor_terms``."""
+    distances (m); see ``weighted_sor_terms``."""
     n, k = dist.shape
+    if n == 0 or k == 0:
+        return no_neighbours(n, alpha, delta, max_density_ratio)
     total = 0.0
     for i in range(n):
         for t in range(k):
@@ -32,7 +77,7 @@ def weighted_sor_kernel(
             w = np.exp(-dist[i, t] / d_avg)  # eq. (4)
             sw += w
             swd += w * dist[i, t]
-        d[i] = swd / sw  # eq. (6)
+        d[i] = swd / sw if sw > 0.0 else shifted_row_mean(dist, i, d_avg)  # eq. (6)
         sum_d += d[i]
         r = max(dist[i, k - 1], 1e-9)
         rho[i] = k / (vol * (r * r * r))
@@ -41,11 +86,13 @@ def weighted_sor_kernel(
     var = 0.0
     for i in range(n):
         var += (d[i] - mu) ** 2
-    sigma = np.sqrt(var / (n - 1)) + delta  # eq. (9)
+    sigma = np.sqrt(var / max(n - 1, 1)) + delta  # eq. (9); 0 + delta for one row
     rho_avg = sum_rho / n
     theta = np.empty(n)
     for i in range(n):
-        theta[i] = mu + alpha * sigma * (1.0 + min(rho_avg / rho[i], max_density_ratio))  # (7)
+        theta[i] = mu + alpha * sigma * (
+            1.0 + density_ratio(rho_avg, rho[i], max_density_ratio)
+        )  # (7)
     return d, mu, sigma, rho, theta
 
 
@@ -91,6 +138,8 @@ def weighted_sor_kernel_simd(
     parallel kernel it was slower with 2 threads on a loaded machine (one more barrier per
     scan than it saved)."""
     n, k = dist.shape
+    if n == 0 or k == 0:
+        return no_neighbours(n, alpha, delta, max_density_ratio)
     n_chunks = (n + EXP_CHUNK - 1) // EXP_CHUNK
     d = np.empty(n)
     rho = np.empty(n)
@@ -124,7 +173,7 @@ def weighted_sor_kernel_simd(
                 wt = w[(i - a) * k + t]
                 sw += wt
                 swd += wt * dist[i, t]
-            d[i] = swd / sw  # eq. (6)
+            d[i] = swd / sw if sw > 0.0 else shifted_row_mean(dist, i, d_avg)  # eq. (6)
             sum_d += d[i]
         part[c] = sum_d
     sum_d = 0.0
@@ -134,8 +183,10 @@ def weighted_sor_kernel_simd(
     var = 0.0
     for i in range(n):
         var += (d[i] - mu) ** 2
-    sigma = np.sqrt(var / (n - 1)) + delta  # eq. (9)
+    sigma = np.sqrt(var / max(n - 1, 1)) + delta  # eq. (9); 0 + delta for one row
     rho_avg = sum_rho / n
     for i in range(n):
-        theta[i] = mu + alpha * sigma * (1.0 + min(rho_avg / rho[i], max_density_ratio))  # (7)
+        theta[i] = mu + alpha * sigma * (
+            1.0 + density_ratio(rho_avg, rho[i], max_density_ratio)
+        )  # (7)
     return d, mu, sigma, rho, theta

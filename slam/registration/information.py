@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam.errors import ConfigError
+
 
 @dataclass
 class InformationConfig:
@@ -36,6 +38,20 @@ class InformationConfig:
     max_sigma_translation: float = 10.0
     max_sigma_rotation_deg: float = 30.0
     degenerate_factor: float = 5.0
+
+    def __post_init__(self) -> None:
+        for kind, unit in (("translation", "m"), ("rotation_deg", "deg")):
+            lo, hi = getattr(self, f"min_sigma_{kind}"), getattr(self, f"max_sigma_{kind}")
+            if not 0 < lo <= hi:
+                raise ConfigError(
+                    f"frontend.information: need 0 < min_sigma_{kind} <= max_sigma_{kind} "
+                    f"({unit}: the floor and ceiling of a registration's sigma), got {lo} and {hi}"
+                )
+        if not self.degenerate_factor >= 1:
+            raise ConfigError(
+                f"frontend.information.degenerate_factor must be >= 1 (a sigma this many times its "
+                f"floor is degenerate), got {self.degenerate_factor}"
+            )
 
 
 @dataclass
