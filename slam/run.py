@@ -159,7 +159,12 @@ def run_one(
     if truth is not None:
         summary["gt_notes"], summary["gt_warnings"] = truth.notes, truth.warnings
         if state.frames > 1:
-            summary["eval"] = evaluate_run(out, truth, system, title=label or config.name)
+            try:
+                summary["eval"] = evaluate_run(out, truth, system, title=label or config.name)
+            except InputError as exc:  # a run stopped after a few frames: too few to align
+                if state.stop is None:
+                    raise
+                summary["eval_error"] = str(exc)
     return summary
 
 
@@ -175,39 +180,57 @@ def compare(
     configure: Callable[[Any], None] | None = None,
 ) -> dict[str, Any]:
     """Run each config on the same input (``out/<config>``; the first that stops early ends
-    the comparison); the papers' APE table, plots and report in ``out``. Every config is
-    loaded and checked before the first run, and the ground truth read before its scans.
+    the comparison, Ctrl-C too, even between two runs); the papers' APE table, plots and
+    report of the configs evaluated in ``out``. Every config is loaded and checked before
+    the first run, and the ground truth read before its scans.
 
     ``configure(config)``: applied to every loaded config (e.g. the CLI's --start/--strict).
-    Returns results (config -> evaluation), tables (by format), out and stops (config ->
-    ``slam.state.Stop`` or None)."""
+    Returns results (config -> evaluation), tables (by format; none when a run stopped
+    before any was evaluated), out, stops (config -> ``slam.state.Stop`` or None, for each
+    config started) and eval_errors (config -> why a run that stopped early could not be
+    evaluated)."""
     from slam.config import load_config
     from slam.eval.plots import plot_all
     from slam.eval.report import write_report
     from slam.eval.tables import ape_table, format_table
+    from slam.interrupts import caused_by_interrupt
     from slam.pipeline import resolved_config
+    from slam.state import Stop, StopReason
 
     results: dict[str, Any] = {}
     stops: dict[str, Any] = {}
+    eval_errors: dict[str, str] = {}
     loaded = [load_config(name, overrides) for name in configs]  # every name, before any run
     for config in loaded:
         if configure is not None:
             configure(config)
         resolved_config(config)  # plugin keys checked too: a bad one stops nothing half-way
     for config in loaded:
-        summary = run_one(
-            bag, config, out / config.name, topic=topic, gt=gt, quiet=quiet, label=config.name
-        )
-        stops[config.name] = summary["stop"]
+        name = config.name
+        try:
+            summary = run_one(bag, config, out / name, topic=topic, gt=gt, quiet=quiet, label=name)
+        except (KeyboardInterrupt, SystemError) as exc:
+            # Ctrl-C outside a run's frames (loading, warm-up, writing, evaluation): the
+            # configs before it still get their table; SystemError: Ctrl-C in numba
+            if not caused_by_interrupt(exc):
+                raise
+            stops[name] = Stop(StopReason.INTERRUPTED)
+            break
+        stops[name] = summary["stop"]
         if "eval" in summary:
-            results[config.name] = summary["eval"]
+            results[name] = summary["eval"]
+        if "eval_error" in summary:
+            eval_errors[name] = summary["eval_error"]
         if summary["stop"] is not None:
             break
+    res = {"results": results, "tables": {}, "out": out, "stops": stops, "eval_errors": eval_errors}
+    if not results and any(stop is not None for stop in stops.values()):
+        return res  # stopped before any run was evaluated: no table
     rows = ape_table({k: v.ape_trans for k, v in results.items()})
-    tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
+    res["tables"] = tables = {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
     (out / "compare.md").write_text(tables["markdown"])
     (out / "compare.csv").write_text(tables["csv"])
-    images = plot_all(results, out / "plots", prefix="compare_") if results else []
+    images = plot_all(results, out / "plots", prefix="compare_")
     write_report(
         out / "report.html",
         title=f"SLAM comparison on {bag.name}",
@@ -215,7 +238,7 @@ def compare(
         images=images,
         meta={"input": str(bag), "ground truth": str(gt), "configs": ", ".join(configs)},
     )
-    return {"results": results, "tables": tables, "out": out, "stops": stops}
+    return res
 
 
 def evaluate_run(out: Path, gt: Any, system: Any = None, title: str = "run") -> Any:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bz2
+import json
 
 import numpy as np
 import pytest
@@ -88,6 +89,44 @@ def test_truncated_bz2_log_stops_with_input_error(tmp_path):
     with pytest.raises(InputError, match="cannot read|cut short"):
         for _ in CarmenSource(path):
             pass
+
+
+def test_a_cut_log_reads_the_scans_before_the_cut(tmp_path):
+    full = shared_path("laser2d", "intel.clf.bz2")
+    path = tmp_path / "cut.clf.bz2"  # the first bz2 block (~900 kB of text) and part of the next
+    path.write_bytes(full.read_bytes()[:150_000])
+    src = CarmenSource(path)
+    assert len(src) == 746 and "Compressed file ended" in src.cut
+    assert src.description.endswith("(746 FLASER scans), cut short after scan 746")
+    assert any("cut short" in note and "the 746 FLASER scans" in note for note in src.notes)
+    scans = []
+    with pytest.raises(InputError, match="cut short after 746 scans"):
+        for item in src:
+            scans.append(item)
+    assert len(scans) == 746 and src.odometry.shape == (746, 3)
+    whole = _first(full, 746)  # the same scans as the whole log's first ones
+    assert all(np.array_equal(a.xyz, b.xyz) for a, b in zip(scans, whole, strict=True))
+
+
+def test_a_run_of_a_cut_log_keeps_its_scans_and_exits_2(tmp_path, capsys):
+    from slam.cli import main
+
+    lines = bz2.decompress(shared_path("laser2d", "intel.clf.bz2").read_bytes()).splitlines(True)
+    laser = [i for i, line in enumerate(lines) if line.startswith(b"FLASER ")]
+    raw = bz2.compress(b"".join(lines[: laser[299] + 1]), compresslevel=1)  # 100 kB blocks
+    path = tmp_path / "cut.clf.bz2"
+    path.write_bytes(raw[: len(raw) * 2 // 3])  # the intel log's first 300 scans, cut short
+    assert main(["info", str(path)]) == 0
+    assert "(167 FLASER scans), cut short after scan 167" in capsys.readouterr().out
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--config", "dpcr2d", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the 167 FLASER scans before the cut are read" in err
+    assert f"run stopped early: bad input: {path} is cut short after 167 scans" in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 167 and "cut short after 167 scans" in metrics["stopped_by"]
+    rows = [r for r in (out / "trajectory.tum").read_text().splitlines() if r[0] != "#"]
+    assert len(rows) == 167
 
 
 def test_not_a_laser_log(tmp_path):

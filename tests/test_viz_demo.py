@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from slam.cli import build_parser, main
-from slam.cli.demo import DEMO_FRAMES, DEMO_SCENE
+from slam.cli.demo import DEMO_FRAMES, DEMO_SCENE, demo_frames
 from slam.eval.metrics import evaluate
 
 pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py
@@ -19,12 +19,18 @@ pytestmark = pytest.mark.usefixtures("evo_home")  # tests/conftest.py
 
 def test_demo_defaults_to_the_city_drive_with_its_revisit():
     args = build_parser().parse_args(["demo"])
-    assert (args.scene, args.frames, args.config) == (
-        DEMO_SCENE,
-        DEMO_FRAMES,
-        "improved_floam_loop",
-    )
+    assert (args.scene, args.frames, args.config) == (DEMO_SCENE, None, "improved_floam_loop")
     assert DEMO_SCENE == "urban" and DEMO_FRAMES >= 1200  # reaches the street driven back
+    assert demo_frames(args.scene, args.frames) == DEMO_FRAMES  # of its 1669
+
+
+def test_demo_of_a_shorter_scene_runs_all_of_it_unless_told(tmp_path, capsys):
+    args = build_parser().parse_args(["demo", "--scene", "corridor"])
+    assert demo_frames(args.scene, args.frames) is None  # all 608: the cached whole sequence
+    assert demo_frames("corridor", 300) == 300
+    code = main(["demo", "--scene", "corridor", "--frames", "700", "--out", str(tmp_path)])
+    assert code == 2
+    assert "scene 'corridor' has 608 frames; frames=700 is out of range" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

@@ -41,10 +41,33 @@ def cmd_compare(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         configure=lambda config: apply_source_args(config, args),
     )
-    print(res["tables"]["text"])
-    eprint(f"table, plots and report written to {out}/")
+    return report_compare(res, args.configs or DEFAULT_COMPARE)
+
+
+def report_compare(
+    res: dict[str, Any], configs: list[str], written: str = "table, plots and report"
+) -> int:
+    """Print the table of a comparison (``slam.run.compare``'s result) and say where its
+    outputs are; for a run that stopped early, where its partial outputs are and which
+    configs did not run. Returns the exit code (that of the stop: 130 for Ctrl-C)."""
+    out = res["out"]
+    if res["tables"]:
+        print(res["tables"]["text"])
+        eprint(f"{written} written to {out}/")
+    else:
+        eprint("no run was evaluated: no table")
+    for name, error in res.get("eval_errors", {}).items():
+        eprint(f"{name}: not in the table: {error}")
     for name, stop in res["stops"].items():
-        if stop is not None:
-            eprint(f"{name}: stopped early: {stop}")
-            return exit_for_stop(stop)
+        if stop is None:
+            continue
+        run_dir = out / name
+        kept = (
+            f"; what it computed is in {run_dir}/" if (run_dir / "metrics.json").is_file() else ""
+        )
+        eprint(f"{name}: stopped early: {stop}{kept}")
+        rest = configs[len(res["stops"]) :]
+        if rest:
+            eprint(f"not run: {' '.join(rest)}")
+        return exit_for_stop(stop)
     return EXIT_OK

@@ -17,7 +17,8 @@ FR079's laser sits 4 cm behind the robot's centre, Intel's and MIT-CSAIL's on it
 off (``CarmenSource.output_trajectory``). ``ROBOTLASER1`` lines
 (``start_angle fov resolution max_range ...``) are read the
 same way when a log has no FLASER. Other lines (ODOM, PARAM, comments) are ignored. A
-damaged line costs that scan (a :class:`SkippedMessage`), not the run. Logs whose clock
+damaged line costs that scan (a :class:`SkippedMessage`), not the run; a compressed log cut
+short gives the scans before the cut, then stops as a truncated bag does. Logs whose clock
 jumps (Intel: single stamps ~1 s ahead, so the next ones look 631 times out of order) keep
 file order: the stamps outside the longest increasing run are interpolated between their
 neighbours in it for the run, with a note; the trajectory files carry the log's own stamps
@@ -227,8 +228,15 @@ class CarmenSource:
             raise InputError(f"CARMEN log not found: {self.path}")
         self.topic: str | None = None
         self.notes: list[str] = []
+        self.cut = ""  # why a compressed log stops early (its file cut short); "" when whole
         self._tag, self._count, self._max_seen = self._survey()
         self.description = f"CARMEN log {self.path} ({self._count} {self._tag} scans)"
+        if self.cut:
+            self.description += f", cut short after scan {self._count}"
+            self._note(
+                f"{self.path} is cut short ({self.cut}): the {self._count} {self._tag} scans "
+                "before the cut are read"
+            )
         if np.any(self.mount != 0):
             x, y, t = self.mount
             self._note(
@@ -245,7 +253,9 @@ class CarmenSource:
 
     def _survey(self) -> tuple[str, int, float]:
         """Which laser tag the log holds, how many scans, and its largest reading (the
-        sensor's "no return" value when the log has no max-range parameter)."""
+        sensor's "no return" value when the log has no max-range parameter). A log whose
+        compressed stream ends early (a copy cut short) holds the scans before the cut
+        (``cut`` says why); iterating it then stops there with an InputError."""
         counts = dict.fromkeys(PARSERS, 0)
         stamps: dict[str, list[float]] = {tag: [] for tag in PARSERS}
         firsts: dict[str, list[str]] = {tag: [] for tag in PARSERS}
@@ -266,7 +276,14 @@ class CarmenSource:
                                 largest = max(largest, max(float(v) for v in parts[1 : n + 1]))
                             except (ValueError, IndexError):
                                 pass
-        except (OSError, EOFError, UnicodeError) as exc:
+        except (OSError, EOFError) as exc:  # a compressed log cut short: read up to the cut
+            if any(counts.values()):
+                self.cut = str(exc)
+            elif isinstance(exc, EOFError):
+                raise InputError(f"{self.path} is cut short before its first scan: {exc}") from exc
+            else:
+                raise InputError(f"cannot read CARMEN log {self.path}: {exc}") from exc
+        except UnicodeError as exc:
             raise InputError(f"cannot read CARMEN log {self.path}: {exc}") from exc
         tag = "FLASER" if counts["FLASER"] else "ROBOTLASER1"
         if counts[tag] == 0:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import signal
 import sys
 import time
 import types
@@ -141,8 +142,33 @@ def _main_hidden():
             sys.modules["__main__"] = main
 
 
+@contextlib.contextmanager
+def _spawning():
+    """Around any call that may start a worker: ``__main__`` hidden (:func:`_main_hidden`)
+    and SIGINT blocked in this thread, so that a worker starts with SIGINT blocked (a new
+    process inherits the signal mask) until :func:`_worker_init` ignores it. Ctrl-C reaches
+    the whole process group: a worker that took it while importing or verifying would die
+    or hand a KeyboardInterrupt back as its result; the parent alone decides when to stop.
+    A SIGINT meanwhile is not lost: another thread of this process takes it, or it waits
+    until the block ends."""
+    mask = getattr(signal, "pthread_sigmask", None)  # absent on Windows
+    blocked = mask is not None and signal.SIGINT not in mask(signal.SIG_BLOCK, ())
+    if blocked:
+        mask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        with _main_hidden():
+            yield
+    finally:
+        if blocked:
+            mask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _worker_init() -> None:
-    """A worker verifies with one thread and logs nothing of its own."""
+    """A worker ignores SIGINT (the parent stops the run and collects the jobs), verifies
+    with one thread and logs nothing of its own."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # discards a SIGINT pending since the spawn
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     logging.getLogger().setLevel(logging.WARNING)
 
 
@@ -169,9 +195,10 @@ class VerifyPool:
                 self.workers, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
             )  # fmt: skip
-            with _main_hidden():
+            with _spawning():
                 for _ in range(self.workers):
                     self._pool.submit(_worker_init)  # processes start on the first submit
+            log.info("loop verification: %d worker process(es) started", self.workers)
         except (BrokenProcessPool, RuntimeError, AssertionError, OSError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
             self._unavailable = True
@@ -184,7 +211,7 @@ class VerifyPool:
         if self._unavailable:
             return
         try:
-            with _main_hidden():  # the executor may start a process on any submit
+            with _spawning():  # the executor may start a process on any submit
                 job.future = self._pool.submit(run_job, job.payload(), self.params)
         except (BrokenProcessPool, RuntimeError) as exc:
             log.warning("loop verification worker unavailable (%s): verifying in-process", exc)
