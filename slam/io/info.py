@@ -143,6 +143,23 @@ def _describe_sequential(path: Path, seq: tuple[Path, Any, Any]) -> dict[str, An
     }
 
 
+def _stamps_to_cut(source: Any) -> tuple[Scan | None, np.ndarray]:
+    """The first scan of ``source`` and the stamps (s) of all; a log cut short
+    (``source.cut``) gives those before the cut."""
+    from slam.errors import InputError
+
+    first, stamps = None, []
+    try:
+        for item in source:
+            if isinstance(item, Scan):
+                first = item if first is None else first
+                stamps.append(item.stamp)
+    except InputError:
+        if not getattr(source, "cut", ""):
+            raise
+    return first, np.asarray(stamps, dtype=float)
+
+
 def describe(path: str | Path) -> dict[str, Any]:
     """Summary of any accepted input (see ``slam.io.source.ACCEPTED``) as a plain dict.
 
@@ -160,10 +177,7 @@ def describe(path: str | Path) -> dict[str, Any]:
         stamps = np.asarray(source.stamps, dtype=float)
         first = next((s for s in source if isinstance(s, Scan)), None)
     else:  # a log (CARMEN) knows its stamps only by reading its scans
-        scans = (s for s in source if isinstance(s, Scan))
-        first = next(scans, None)
-        rest = [s.stamp for s in scans]
-        stamps = np.asarray(([first.stamp] if first is not None else []) + rest, dtype=float)
+        first, stamps = _stamps_to_cut(source)
     rate = None
     if stamps.size > 1 and stamps[-1] > stamps[0]:
         rate = (stamps.size - 1) / (stamps[-1] - stamps[0])
