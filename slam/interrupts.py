@@ -18,10 +18,12 @@ log = logging.getLogger(__name__)
 class StopRequest:
     """Context manager: while active in the main thread, the first SIGINT sets
     ``requested`` instead of raising. Leaves SIGINT alone when a caller installed its own
-    handler or ignores it (only Python's default handler is replaced, then restored)."""
+    handler or ignores it (only Python's default handler is replaced, then restored).
+    ``message``: the warning the first Ctrl-C logs (what the run does before it stops)."""
 
-    def __init__(self) -> None:
+    def __init__(self, message: str = "stopping after this frame") -> None:
         self.requested = False
+        self.message = message
         self._previous = None
 
     def __enter__(self) -> StopRequest:
@@ -36,7 +38,7 @@ class StopRequest:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        log.warning("Ctrl-C: stopping after this frame (press again to abort at once)")
+        log.warning("Ctrl-C: %s (press again to abort at once)", self.message)
 
     def __exit__(self, *exc) -> bool:
         if self._previous is not None:

@@ -48,9 +48,10 @@ def run_stream(
     then ``system.finish()``. Returns ``system.state`` (``stop`` says why it ended early).
 
     Ctrl-C (SIGINT, when Python's default handler is in place) stops the loop after the
-    message in hand, a second one at once; bad input (an InputError of the source, the
-    stream or a plugin) first processes the scans the stream still holds. Never loses
-    computed frames. ``on_message(n)``: input messages consumed so far (progress).
+    message in hand, a second one at once (during ``finish`` the first one waits for it);
+    bad input (an InputError of the source, the stream or a plugin) first processes the
+    scans the stream still holds. Never loses computed frames. ``on_message(n)``: input
+    messages consumed so far (progress).
     """
     st = system.state
     began = time.perf_counter()
@@ -77,7 +78,10 @@ def run_stream(
         pass  # recorded by the system where it failed
     finally:
         st.wall_seconds += time.perf_counter() - began
-        system.finish()
+        with StopRequest("finishing the run first (the final optimisation)") as late:
+            system.finish()
+        if late.requested and st.stop is None:
+            st.stopped(StopReason.INTERRUPTED)
     return st
 
 

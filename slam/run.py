@@ -115,8 +115,10 @@ def run_one(
 
     ``gt`` is read and checked before the first scan (``slam.eval.ground_truth``);
     ``observers``: ``slam.observer.RunObserver`` s that watch the run (a live viewer)."""
+    from slam.interrupts import StopRequest
     from slam.io.source import open_source
     from slam.pipeline import resolved_config, run_stream
+    from slam.state import StopReason
     from slam.system import SlamSystem
 
     resolved = resolved_config(config)
@@ -143,7 +145,12 @@ def run_one(
     notes = list(getattr(source, "notes", []))
     extra = {"input": str(bag), "topic": getattr(source, "topic", None), "input_notes": notes}
     extra = {**extra, "warmup_seconds": warmup_seconds}
-    written = _write_all(system, out, resolved, extra, getattr(source, "output_trajectory", None))
+    with StopRequest("writing the outputs first") as late:  # Ctrl-C: they are written
+        written = _write_all(
+            system, out, resolved, extra, getattr(source, "output_trajectory", None)
+        )
+    if late.requested and state.stop is None:
+        state.stopped(StopReason.INTERRUPTED)
     summary: dict[str, Any] = {
         "out": out,
         "frames": state.frames,

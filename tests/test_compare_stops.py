@@ -77,3 +77,30 @@ def _floam(frames):
     config = load_config("floam")
     config.source.max_frames = frames
     return config
+
+
+def test_ctrl_c_while_writing_the_outputs_still_writes_them(
+    corridor_short, tmp_path, caplog, monkeypatch
+):
+    """The first Ctrl-C after the last frame waits for the outputs; the exit code says it came."""
+    import os
+    import signal
+
+    import slam.outputs
+
+    real = slam.outputs.write_outputs
+
+    def write_outputs(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(slam.outputs, "write_outputs", write_outputs)
+    out = tmp_path / "run"
+    code = main(["run", str(corridor_short.bag), "--config", "floam", "--out", str(out),
+                 "--max-frames", "12", "--quiet"])  # fmt: skip
+    assert code == 130
+    rows = [r for r in (out / "trajectory.tum").read_text().splitlines() if r[0] != "#"]
+    assert len(rows) == 12
+    assert (out / "metrics.json").stat().st_size > 0 and (out / "map.pcd").stat().st_size > 0
+    assert "writing the outputs first" in caplog.text
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

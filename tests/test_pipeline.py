@@ -160,6 +160,26 @@ def test_ctrl_c_stops_after_the_frame_in_hand_twice_at_once(times, frames):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_ctrl_c_while_finishing_waits_for_the_final_estimate(monkeypatch):
+    """Ctrl-C during the final optimisation (after the last frame) lets it finish: every
+    frame keeps its final pose and the run says it was interrupted."""
+    poses = circle_odometry(n=30)
+    pipe = make_pipeline(poses)
+    finish = pipe.finish
+    seen = []
+
+    def interrupted_finish():
+        os.kill(os.getpid(), signal.SIGINT)
+        seen.append(signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+        finish()
+
+    monkeypatch.setattr(pipe, "finish", interrupted_finish)
+    st = pipe.run(scans(30))
+    assert seen == [False] and st.frames == 30 and st.stopped_by.startswith("interrupted")
+    assert np.abs(st.trajectory()[:, :3, 3] - poses[:, :3, 3]).max() < 1e-6
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_a_system_error_not_caused_by_ctrl_c_is_not_swallowed():
     pipe = make_pipeline(circle_odometry(n=10))
     with pytest.raises(SystemError):
