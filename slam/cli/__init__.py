@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
+import sys
 import threading
 
 from slam.cli import compare, configs, demo, evaluate, info, run, simulate, sweep, view
-from slam.cli.common import EXIT_BAD_INPUT, EXIT_FAIL, EXIT_INTERRUPTED, eprint
+from slam.cli.common import EXIT_BAD_INPUT, EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, eprint
 from slam.errors import ConfigError, InputError, SlamError
 
 # the order of ``slam --help``
@@ -42,6 +44,13 @@ def _restore_interrupt() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def _drop_stdout() -> None:
+    """The reader of our stdout went away (``slam configs | head``): send the rest of the
+    output, and the flush at exit, to /dev/null instead of a BrokenPipeError traceback."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -50,7 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     _restore_interrupt()
     try:
-        return args.func(args)
+        code = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
+        return code
+    except BrokenPipeError:
+        _drop_stdout()
+        return EXIT_OK
     except KeyboardInterrupt:
         eprint("interrupted")
         return EXIT_INTERRUPTED
