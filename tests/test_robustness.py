@@ -175,3 +175,20 @@ def test_true_stamps_follow_the_clock_the_run_used():
     np.testing.assert_allclose(degrade.true_stamps(stamp_map, followed), true)
     jittered = np.column_stack([true + 0.013 * np.sin(np.arange(40)), true, record])
     np.testing.assert_allclose(degrade.true_stamps(jittered, jittered[:, 0]), true)
+
+
+def test_a_bag_cut_within_its_first_scans_gives_them(tmp_path, corridor_short, capsys):
+    """A cut before the 10 scans that choose the clock: those scans were lost (0 frames)."""
+    import re
+
+    from slam.cli import main
+    from slam.io.trajectory import read_tum
+
+    bag = degrade.truncate_bag(corridor_short.bag, tmp_path / "cut.bag", keep=0.1)
+    assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    n = int(re.search(r"the (\d+) messages on /velodyne_points before the cut", err).group(1))
+    assert 3 <= n < 10 and "Traceback" not in err
+    stamps, _ = read_tum(tmp_path / "o" / "trajectory.tum")
+    clean = [s.stamp for s in open_source(corridor_short.bag)]
+    np.testing.assert_allclose(stamps, clean[:n], atol=1e-6)

@@ -117,13 +117,17 @@ def with_clock(
     it = iter(items)
     head: list[tuple[Scan | SkippedMessage, float | None]] = []
     clock = mode
+    cut: InputError | None = None  # the input ended in an error while probing
     if mode == "auto":
         n_scans = 0
-        for pair in it:
-            head.append(pair)
-            n_scans += isinstance(pair[0], Scan)
-            if n_scans >= PROBE:
-                break
+        try:
+            for pair in it:
+                head.append(pair)
+                n_scans += isinstance(pair[0], Scan)
+                if n_scans >= PROBE:
+                    break
+        except InputError as exc:  # a bag cut before PROBE scans: keep the scans read
+            cut, it = exc, iter(())
         probe = [(s.stamp, r) for s, r in head if isinstance(s, Scan)]
         record = [r for _, r in probe]
         clock, note = choose_clock(
@@ -143,6 +147,8 @@ def with_clock(
                     )
                 item.stamp = float(rec)
             yield item
+    if cut is not None:
+        raise cut
 
 
 class Reorder:
