@@ -78,3 +78,28 @@ def test_demo_report_opens_with_the_trajectories_and_shows_the_map(demo):
     run_report = (out / "improved_floam_loop" / "report.html").read_text()
     assert "<h2>Map</h2>" in run_report
     assert np.isfinite(metrics["frames_per_second"])
+
+
+def test_demo_stopped_before_two_frames_says_so_and_exits_130(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during the first frame: nothing to evaluate; the exit code is Ctrl-C's, not bad
+    input's, and the run's outputs are kept."""
+    import os
+    import signal
+
+    from slam.system import SlamSystem
+
+    real = SlamSystem.process
+
+    def process(self, scan):
+        if scan.index == 0:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(self, scan)
+
+    monkeypatch.setattr(SlamSystem, "process", process)
+    code = main(["demo", "--scene", "corridor", "--frames", "60", "--out", str(tmp_path),
+                 "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 130 and "Traceback" not in err
+    assert "the demo stopped before it had two frames to evaluate" in err
+    assert "run stopped early: interrupted" in err
+    assert (tmp_path / "improved_floam_loop" / "trajectory.tum").is_file()

@@ -71,6 +71,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             res, args.configs, "demo outputs (trajectories, maps, plots, report.html)"
         )
     demo = run_demo(seq.bag, seq.ground_truth, out, config=args.config, quiet=args.quiet)
+    if demo.closed is None:
+        eprint("the demo stopped before it had two frames to evaluate")
+        return stop_code(demo.summary)
     print(demo.tables["text"])
     eprint(f"report (trajectories with the loops, the map before / after): {demo.report}")
     return stop_code(demo.summary)

@@ -21,10 +21,11 @@ ODOM_ROW, LOOP_ROW = "odometry only", "loop closed"
 
 @dataclass
 class DemoResult:
-    """The two evaluations, the table in three formats, the run's summary, the report."""
+    """The two evaluations, the table in three formats, the run's summary, the report
+    (a run stopped too early to evaluate: no evaluations, no tables, ``report`` its folder)."""
 
-    odometry: Any  # EvalResult of odometry.tum
-    closed: Any  # EvalResult of trajectory.tum
+    odometry: Any  # EvalResult of odometry.tum, None when stopped too early
+    closed: Any  # EvalResult of trajectory.tum, None when stopped too early
     tables: dict[str, str]
     summary: dict[str, Any]
     report: Path
@@ -67,6 +68,8 @@ def run_demo(
     cfg = load_config(config)
     run_dir = out / cfg.name
     summary = run_one(bag, cfg, run_dir, gt=gt, quiet=quiet, label=cfg.name)
+    if "eval" not in summary and summary["stop"] is not None:  # stopped before 2 frames
+        return DemoResult(None, None, {}, summary, run_dir)
     if "eval" not in summary:
         from slam.errors import InputError
 
