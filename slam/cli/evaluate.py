@@ -20,6 +20,11 @@ def add_parser(sub: Any) -> None:
         "--relations",
         help="Freiburg relations (t1 t2 x y z roll pitch yaw): Kuemmerle's relation metric",
     )
+    q.add_argument(
+        "--calib",
+        help="KITTI calib.txt whose Tr takes camera poses (GT a poses.txt) to the LiDAR frame "
+        "(default: the calib.txt beside GT)",
+    )
     q.add_argument("--max-dt", type=float, default=0.01, help="relation stamp match tolerance (s)")
     q.add_argument("--align", default="se3", choices=["se3", "sim3", "none"])
     q.add_argument("--n-align", type=int, default=-1, help="align on the first N poses only")
@@ -28,7 +33,8 @@ def add_parser(sub: Any) -> None:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from slam.eval.metrics import EvalOptions, evaluate
+    from slam.eval.ground_truth import evaluate_truth, kitti_truth_in_lidar, read_ground_truth
+    from slam.eval.metrics import EvalOptions
     from slam.eval.tables import ape_table, format_table
 
     if args.relations:
@@ -38,7 +44,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.gt:
         raise InputError("slam eval EST GT (ground truth) or slam eval EST --relations FILE")
     options = EvalOptions(align=args.align, n_align=args.n_align)
-    result = evaluate(Path(args.est), gt_path(args.gt), options)
+    truth = kitti_truth_in_lidar(read_ground_truth(gt_path(args.gt)), args.calib)
+    for line in truth.notes:
+        eprint(line)
+    for line in truth.warnings:
+        eprint(f"warning: {line}")
+    result = evaluate_truth(Path(args.est), truth, options)
     print(format_table(ape_table({Path(args.est).stem: result.ape_trans}), "text"))
     data = result.to_dict()
     for key in ("rpe_trans", "rpe_rot", "kitti"):

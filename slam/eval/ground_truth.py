@@ -66,6 +66,35 @@ def read_ground_truth(path: str | Path, source: Any = None) -> GroundTruth:
     return truth
 
 
+def kitti_truth_in_lidar(truth: GroundTruth, calib: str | Path | None = None) -> GroundTruth:
+    """``slam eval`` of a LiDAR trajectory against stamp-less (KITTI) camera poses: taken to
+    the LiDAR frame with the ``Tr`` of ``calib`` (default: a calib.txt beside the poses
+    file), else a warning. Poses with stamps (TUM) are returned as they are."""
+    from slam.errors import InputError
+    from slam.io.kitti import read_calib_tr
+
+    if truth.stamps is not None:
+        return truth
+    given = calib is not None
+    calib = Path(calib) if given else truth.path.parent / "calib.txt"
+    if not calib.is_file():
+        if given:
+            raise InputError(f"calibration file not found: {calib}")
+        truth.warnings.append(
+            f"{truth.path}: KITTI poses are of the left camera; with no {calib} (or --calib) "
+            "RPE and rotation errors compare camera with LiDAR motion (metres off)"
+        )
+        return truth
+    tr = read_calib_tr(calib)
+    if tr is None:
+        raise InputError(f"{calib} has no 'Tr:' line (the LiDAR-to-camera transform)")
+    truth.poses = np.linalg.inv(tr)[None] @ truth.poses @ tr[None]
+    truth.notes.append(
+        f"ground truth {truth.path}: KITTI camera poses taken to the LiDAR frame (Tr of {calib})"
+    )
+    return truth
+
+
 def evaluate_truth(
     est_path: str | Path, truth: GroundTruth, options: EvalOptions | None = None
 ) -> EvalResult:
