@@ -277,8 +277,21 @@ def _upgrade_plugin_section(
 def load_config(name_or_path: str | None = None, overrides: list[str] | None = None) -> SlamConfig:
     """Load a recipe by name (``configs/NAME.yaml``) or path, apply ``--set`` overrides."""
     raw = load_raw(name_or_path or DEFAULT_CONFIG)
-    raw = apply_overrides(raw, overrides or [])
-    return from_dict(raw)
+    if not overrides:
+        return from_dict(raw)
+    recipe = from_dict(copy.deepcopy(raw))
+    config = from_dict(apply_overrides(raw, overrides))
+    if not any(o.split("=", 1)[0].strip() == "name" for o in overrides):
+        # another front / back end than the recipe's: the outputs must not carry the
+        # recipe's name alone ("improved_floam" that ran floam)
+        swapped = [
+            str(getattr(config, part).get("name"))
+            for part in ("frontend", "backend")
+            if getattr(config, part).get("name") != getattr(recipe, part).get("name")
+        ]
+        if swapped:
+            config.name = "+".join([config.name, *swapped])
+    return config
 
 
 def save_config(config: SlamConfig, path: Path, resolved: dict[str, Any] | None = None) -> None:

@@ -101,3 +101,15 @@ def test_builtin_recipes_load_and_loop_recipe_inherits():
     floam, floam_loop = load_config("floam"), load_config("floam_loop")
     assert floam_loop.frontend == floam.frontend and floam_loop.frontend["name"] == "floam"
     assert floam_loop.factors["loop_closure"]["enabled"] is True
+
+
+def test_a_swapped_front_or_back_end_is_in_the_run_name():
+    """--set frontend.name=floam on improved_floam ran floam under improved_floam's name."""
+    from slam.config import load_config
+
+    assert load_config("improved_floam", ["frontend.name=floam"]).name == "improved_floam+floam"
+    assert load_config("dpcr2d", ["backend.name=isam2"]).name == "dpcr2d+isam2"
+    assert load_config("improved_floam", ["frontend.name=improved_floam"]).name == "improved_floam"
+    assert load_config("improved_floam_loop", ["backend.name=isam2"]).name == "improved_floam_loop"
+    assert load_config("improved_floam", ["frontend.name=floam", "name=mine"]).name == "mine"
+    assert load_config("improved_floam", ["frontend.sor.k=8"]).name == "improved_floam"
