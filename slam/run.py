@@ -284,13 +284,11 @@ def evaluate_run(out: Path, gt: Any, system: Any = None, title: str = "run") -> 
 
 
 def _loop_positions(system: Any) -> list | None:
-    """Pairs of optimised keyframe positions for each accepted loop, for the plots."""
-    st = system.state
-    pairs = []
-    for source in system.factor_sources:
-        for ev in getattr(source.plugin, "events", []):
-            if ev.accepted and ev.source in st.estimates and ev.target in st.estimates:
-                pairs.append(
-                    (st.estimates[ev.target][:3, 3].copy(), st.estimates[ev.source][:3, 3].copy())
-                )
+    """Pairs of optimised keyframe positions of each loop edge in the graph, for the plots."""
+    est = system.state.estimates
+    pairs = [
+        (est[a][:3, 3].copy(), est[b][:3, 3].copy())
+        for a, b in system.state.loop_pairs
+        if a in est and b in est
+    ]
     return pairs or None

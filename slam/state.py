@@ -67,7 +67,8 @@ class RunState:
     memory_reference: tuple[float, float] | None = None
     skipped_frames: int = 0  # frames the front end could not register (prediction kept)
     degenerate_frames: int = 0
-    loops_closed: int = 0
+    loops_closed: int = 0  # loop factors in the graph
+    loop_pairs: list[tuple[int, int]] = field(default_factory=list)  # their keyframe ids
     estimates: dict[int, np.ndarray] = field(default_factory=dict)
     wall_seconds: float = 0.0
     input: StreamStats = field(default_factory=StreamStats)  # what the input stream dropped

@@ -199,9 +199,11 @@ class SlamSystem:
             if new and source.is_loop:
                 loop_closed = True
                 st.loops_closed += len(new)
+                pairs = loop_pairs(new)
+                st.loop_pairs.extend(pairs)
                 if self.observers:
                     with self.timer("observers"):
-                        for a, b in loop_pairs(new):
+                        for a, b in pairs:
                             self.observers.on_loop(a, b)
             factors.extend(new)
         return factors, loop_closed

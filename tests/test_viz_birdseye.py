@@ -102,11 +102,9 @@ def fake_pipeline():
         estimates=est,
         odom_poses=frames,
         trajectory=lambda: np.stack([est[k] for k in (0, 1, 2)]),
+        loop_pairs=[(0, 2)],  # the loop edge in the graph
     )
-    events = [SimpleNamespace(accepted=True, source=2, target=0)]
-    return SimpleNamespace(
-        state=state, factor_sources=[SimpleNamespace(plugin=SimpleNamespace(events=events))]
-    )
+    return SimpleNamespace(state=state, factor_sources=[])
 
 
 def test_map_before_and_after_loop_closure(close_figures):

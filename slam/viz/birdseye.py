@@ -239,13 +239,9 @@ def map_file(run_dir: Path) -> Path | None:
 
 
 def loop_pairs(pipeline: Any) -> list[tuple[int, int]]:
-    """(target, source) keyframe ids of every accepted loop of a finished pipeline."""
-    pairs = []
-    for source in getattr(pipeline, "factor_sources", []):
-        for ev in getattr(source.plugin, "events", []):
-            if ev.accepted:
-                pairs.append((int(ev.target), int(ev.source)))
-    return pairs
+    """Keyframe ids of every loop edge in a finished pipeline's graph (a verified loop that
+    a consistency check still held back is not one: metrics.json's ``loops_closed``)."""
+    return [(int(a), int(b)) for a, b in pipeline.state.loop_pairs]
 
 
 def _edges(poses: dict[int, np.ndarray], pairs: Sequence[tuple[int, int]]) -> np.ndarray:
