@@ -260,9 +260,10 @@ def evaluate_run(out: Path, gt: Any, system: Any = None, title: str = "run") -> 
     gt = truth.path
     result = evaluate_truth(out / "trajectory.tum", truth)
     (out / "ape.json").write_text(json.dumps(result.to_dict(), indent=2))
-    loops = _loop_positions(system) if system is not None else None
+    from slam.viz.birdseye import loop_positions, map_images
+
+    loops = (loop_positions(system) or None) if system is not None else None
     images = plot_all(result, out / "plots", loop_positions=loops)
-    from slam.viz.birdseye import map_images
 
     maps = map_images(out, system)
     table = format_table(ape_table({title: result.ape_trans}), "markdown")
@@ -281,14 +282,3 @@ def evaluate_run(out: Path, gt: Any, system: Any = None, title: str = "run") -> 
         },
     )
     return result
-
-
-def _loop_positions(system: Any) -> list | None:
-    """Pairs of optimised keyframe positions of each loop edge in the graph, for the plots."""
-    est = system.state.estimates
-    pairs = [
-        (est[a][:3, 3].copy(), est[b][:3, 3].copy())
-        for a, b in system.state.loop_pairs
-        if a in est and b in est
-    ]
-    return pairs or None

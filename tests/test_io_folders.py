@@ -10,7 +10,7 @@ import pytest
 from shared_data import shared_path
 
 from slam.errors import InputError
-from slam.io.folders import FolderSource, natural_key, stamps_from_names
+from slam.io.folders import FolderSource, name_stamps, natural_key
 from slam.io.info import describe
 from slam.io.kitti import KittiSource
 from slam.io.maps import write_map
@@ -115,7 +115,7 @@ def test_stamp_parsing_units():
     from pathlib import Path
 
     files = [Path("1600000000123456789.pcd"), Path("1600000000223456789.pcd")]
-    np.testing.assert_allclose(stamps_from_names(files), [1600000000.1234567, 1600000000.2234567])
+    np.testing.assert_allclose(name_stamps(files)[0], [1600000000.1234567, 1600000000.2234567])
     assert natural_key(Path("a2.pcd")) < natural_key(Path("a10.pcd"))
 
 
@@ -316,9 +316,9 @@ def test_compressed_pcd_and_ply_through_open3d_damaged_ones_skipped(tmp_path):
 
 def test_zero_padded_frame_counters_are_frames_not_seconds():
     files = [Path(f"{i:010d}.pcd") for i in (0, 1, 2, 4)]  # one frame missing
-    np.testing.assert_allclose(stamps_from_names(files), [0.0, 0.1, 0.2, 0.4])
+    np.testing.assert_allclose(name_stamps(files)[0], [0.0, 0.1, 0.2, 0.4])
     seconds = [Path("1600000000.100.pcd"), Path("1600000000.200.pcd")]
-    np.testing.assert_allclose(stamps_from_names(seconds), [1600000000.1, 1600000000.2])
+    np.testing.assert_allclose(name_stamps(seconds)[0], [1600000000.1, 1600000000.2])
 
 
 def test_folder_of_kitti_bins_directly(tmp_path):

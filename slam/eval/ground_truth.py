@@ -71,7 +71,7 @@ def kitti_truth_in_lidar(truth: GroundTruth, calib: str | Path | None = None) ->
     the LiDAR frame with the ``Tr`` of ``calib`` (default: a calib.txt beside the poses
     file), else a warning. Poses with stamps (TUM) are returned as they are."""
     from slam.errors import InputError
-    from slam.io.kitti import read_calib_tr
+    from slam.io.kitti import camera_poses_to_lidar, read_calib_tr
 
     if truth.stamps is not None:
         return truth
@@ -88,7 +88,7 @@ def kitti_truth_in_lidar(truth: GroundTruth, calib: str | Path | None = None) ->
     tr = read_calib_tr(calib)
     if tr is None:
         raise InputError(f"{calib} has no 'Tr:' line (the LiDAR-to-camera transform)")
-    truth.poses = np.linalg.inv(tr)[None] @ truth.poses @ tr[None]
+    truth.poses = camera_poses_to_lidar(truth.poses, tr)
     truth.notes.append(
         f"ground truth {truth.path}: KITTI camera poses taken to the LiDAR frame (Tr of {calib})"
     )

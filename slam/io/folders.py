@@ -37,17 +37,12 @@ def cloud_files(path: Path) -> list[Path]:
     return sorted((p for p in path.iterdir() if p.suffix.lower() in SUFFIXES), key=natural_key)
 
 
-def stamps_from_names(files: list[Path], period: float = FRAME_PERIOD_S) -> np.ndarray:
-    """Stamps (s) parsed from numeric file stems, or index * ``period`` when any does not
-    parse.
+def name_stamps(files: list[Path], period: float = FRAME_PERIOD_S) -> tuple[np.ndarray, bool]:
+    """(stamps in s, True when they come from ``period``: the names are no stamps): parsed
+    from numeric file stems, or index * ``period`` when any does not parse.
 
     Zero-padded frame counters (``0000000000.pcd``, ``000001.bin``: small integers mostly
     one apart) are frame numbers, not seconds: number * ``period``."""
-    return name_stamps(files, period)[0]
-
-
-def name_stamps(files: list[Path], period: float) -> tuple[np.ndarray, bool]:
-    """(stamps in s, True when they come from ``period``: the names are no stamps)."""
     try:
         values = np.array([float(f.stem) for f in files], dtype=np.float64)
     except ValueError:

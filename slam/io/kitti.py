@@ -78,6 +78,12 @@ def read_calib_tr(path: str | Path) -> np.ndarray | None:
     return None
 
 
+def camera_poses_to_lidar(poses: np.ndarray, tr: np.ndarray) -> np.ndarray:
+    """KITTI camera poses (N,4,4) (T_cam0start_cam0, as poses.txt) -> LiDAR poses
+    T_velo0_velo = Tr^-1 P Tr, ``tr`` = T_cam0_velo of calib.txt."""
+    return np.linalg.inv(tr)[None] @ np.asarray(poses, dtype=float) @ tr[None]
+
+
 class KittiSource:
     """Scans of a KITTI odometry sequence folder, in file-name order; ``frame_period``: seconds
     between scans without ``times.txt`` (``source.frame_period``)."""
@@ -137,9 +143,7 @@ class KittiSource:
         """KITTI camera poses (N,4,4) (T_cam0start_cam0, as poses.txt) -> LiDAR poses
         T_velo0_velo = Tr^-1 P Tr with the ``Tr`` of calib.txt; None without it."""
         tr = read_calib_tr(self.calib_file) if self.calib_file.is_file() else None
-        if tr is None:
-            return None
-        return np.linalg.inv(tr)[None] @ np.asarray(poses, dtype=float) @ tr[None]
+        return None if tr is None else camera_poses_to_lidar(poses, tr)
 
     def ground_truth(self) -> np.ndarray | None:
         """(N, 4, 4) ground-truth poses in the LiDAR frame (T_velo0_velo), None without poses.txt.

@@ -244,6 +244,16 @@ def loop_pairs(pipeline: Any) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in pipeline.state.loop_pairs]
 
 
+def loop_positions(pipeline: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Optimised positions (3,) of the two keyframes of every loop edge in the graph."""
+    est = pipeline.state.estimates
+    return [
+        (est[a][:3, 3].copy(), est[b][:3, 3].copy())
+        for a, b in loop_pairs(pipeline)
+        if a in est and b in est
+    ]
+
+
 def _edges(poses: dict[int, np.ndarray], pairs: Sequence[tuple[int, int]]) -> np.ndarray:
     segs = [(poses[a][:2, 3], poses[b][:2, 3]) for a, b in pairs if a in poses and b in poses]
     return np.asarray(segs, dtype=float).reshape(-1, 2, 2)

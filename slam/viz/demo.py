@@ -40,18 +40,6 @@ def demo_table(odometry: Any, closed: Any) -> dict[str, str]:
     return {fmt: format_table(rows, fmt) for fmt in ("text", "markdown", "csv")}
 
 
-def loop_positions(pipeline: Any) -> list:
-    """(2, 3) optimised positions of the two keyframes of every accepted loop."""
-    from slam.viz.birdseye import loop_pairs
-
-    est = pipeline.state.estimates
-    return [
-        (est[a][:3, 3].copy(), est[b][:3, 3].copy())
-        for a, b in loop_pairs(pipeline)
-        if a in est and b in est
-    ]
-
-
 def run_demo(
     bag: Path, gt: Path, out: Path, *, config: str = DEMO_CONFIG, quiet: bool = False
 ) -> DemoResult:
@@ -63,7 +51,7 @@ def run_demo(
     from slam.eval.plots import odometry_vs_loop_figure, save_png
     from slam.eval.report import write_report
     from slam.run import run_one
-    from slam.viz.birdseye import map_images
+    from slam.viz.birdseye import loop_positions, map_images
 
     cfg = load_config(config)
     run_dir = out / cfg.name
