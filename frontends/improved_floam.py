@@ -16,6 +16,12 @@ from slam.deferred import Deferred, numba_threads
 from slam.errors import ConfigError
 from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
+from slam.features.scatter import (
+    ALONG_ROAD,
+    ScatterConfig,
+    horizontal_observability,
+    scatter_points,
+)
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
@@ -32,7 +38,12 @@ from slam.registration.gicp import (
     gicp_align,
     robust_weights,
 )
-from slam.registration.ground_plane import GroundPlaneConfig, flatten_ground, scan_ground
+from slam.registration.ground_plane import (
+    GroundPlaneConfig,
+    fit_ground,
+    flatten_ground,
+    on_ground,
+)
 from slam.registration.plausibility import PlausibilityConfig
 from slam.registration.pose_prior import MotionPriorConfig, PosePrior
 from slam.registration.se3 import transform
@@ -123,6 +134,10 @@ class ImprovedFloamConfig(CommonConfig):
     ground: source features on the scan's ground plane constrain only along its normal
     (``slam.registration.ground_plane``; sensors of ``ground.min_beams`` or more): the rings'
     pattern moves with the sensor.
+    scatter: also register the points LOAM's selection leaves out (vegetation, clutter) off
+    the ground (``slam.features.scatter``; the recipe ``improved_floam_open_road``). Every
+    scan reports ``horizontal_observability`` of its features and ``along_road`` (1 below
+    ``slam.features.scatter.ALONG_ROAD``).
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -133,6 +148,7 @@ class ImprovedFloamConfig(CommonConfig):
     beam_calibration: BeamCalibrationConfig = field(default_factory=BeamCalibrationConfig)
     motion_prior: MotionPriorConfig = field(default_factory=_improved_motion_prior)
     ground: GroundPlaneConfig = field(default_factory=GroundPlaneConfig)
+    scatter: ScatterConfig = field(default_factory=ScatterConfig)
     edge_voxel: float = 0.2
     plane_voxel: float = 0.4
     covariance_source: str = "features"
@@ -254,7 +270,7 @@ class ImprovedFloam(ScanToMapFrontend):
         rings = np.asarray(rings)
         flt = replace(flt, xyz=self._calibration.correct(flt.xyz, rings))
         est = Estimate(T_pred, filtered=flt.xyz, counts=counts)
-        e_idx, p_idx = self._feature_indices(flt, rings)
+        e_idx, p_idx, candidates = self._feature_indices(flt, rings)
         counts.update(n_edges=int(len(e_idx)), n_planes=int(len(p_idx)))
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
         if len(e_idx) + len(p_idx) < 10:
@@ -262,10 +278,41 @@ class ImprovedFloam(ScanToMapFrontend):
             return est
 
         t = time.perf_counter()
-        est.pending = self._feature_cloud(flt.xyz, rings, e_idx, p_idx)
-        counts["n_registered"] = int(len(est.pending.registration_source()[0]))
+        gc, sc = self.cfg.ground, self.cfg.scatter
+        plane = fit_ground(flt.xyz, gc) if gc.enabled else None
+        extra = np.zeros(0, dtype=np.int64)
+        if sc.enabled:  # after the features: the first n_feat points stay the features
+            extra = scatter_points(flt.xyz, candidates, plane, sc)
+        n_feat = len(e_idx) + len(p_idx)
+        beams = int(rings.max()) + 1 if len(rings) else 0
+        flatten = plane if beams >= gc.min_beams else None
+        est.pending = self._feature_cloud(
+            flt.xyz, rings, e_idx, np.concatenate([p_idx, extra]), flatten
+        )
+        seen = self._observability(est.pending, n_feat, plane)
+        counts.update(
+            horizontal_observability=seen,
+            along_road=int(seen < ALONG_ROAD),
+            scatter_points=int(len(extra)),
+            n_registered=int(len(est.pending.registration_source()[0])),
+        )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
+
+    def _observability(
+        self, fc: FeatureCloud, n_feat: int, plane: tuple[np.ndarray, float] | None
+    ) -> float:
+        """``horizontal_observability`` of the registered features (the first n_feat points
+        of ``fc``) off the ground ``plane``: flattened or not, the ground observes no
+        horizontal motion, so every sensor is judged alike. At most ~2000 covariances (an
+        even subsample): a statistic of the scan."""
+        src, covs = fc.registration_source()
+        reg = np.arange(len(fc.points)) if fc.registered is None else fc.registered
+        keep = reg < n_feat
+        if plane is not None:
+            keep &= ~on_ground(src, plane, self.cfg.ground.band)
+        rows = np.flatnonzero(keep)
+        return horizontal_observability(covs[rows[:: max(1, len(rows) // 2000)]])
 
     def look_ahead(self, scan: Scan) -> None:
         self._scan_filter.ahead(scan)
@@ -275,15 +322,21 @@ class ImprovedFloam(ScanToMapFrontend):
         timings.update(self._filtered.timings)
         timings["filter_wait_ms"] = waited * 1e3
 
-    def _feature_indices(self, flt: Filtered, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _feature_indices(
+        self, flt: Filtered, rings: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Edge and plane indices into ``flt.xyz``: LOAM features voxel-thinned in place, then
-        the curvature correction (paper 000, kappa = tr/||.||_F) on the features kept."""
+        the curvature correction (paper 000, kappa = tr/||.||_F) on the features kept; and
+        the (N,) mask of every edge or plane candidate before thinning."""
         cfg, fc, xyz = self.cfg, self.cfg.features, flt.xyz
         feats = extract_features(xyz, rings, self._features_no_kappa, top_picks=False)
+        candidates = np.zeros(len(xyz), dtype=bool)
+        candidates[feats.edge_idx] = True
+        candidates[feats.plane_idx] = True
         e_idx = feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]
         p_idx = feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]
         if not fc.use_covariance_curvature or len(e_idx) + len(p_idx) == 0:
-            return e_idx, p_idx
+            return e_idx, p_idx, candidates
         q = np.concatenate([e_idx, p_idx])
         nbh = flt.nbh
         if nbh is not None and nbh.idx.shape[1] >= min(fc.cov_k, len(flt.raw)):
@@ -295,14 +348,20 @@ class ImprovedFloam(ScanToMapFrontend):
         n_e = len(e_idx)
         e_idx = e_idx[~(kappa[:n_e] > fc.kappa_edge_max)]
         p_idx = p_idx[~(kappa[n_e:] > fc.kappa_plane_max)]
-        return e_idx, p_idx
+        return e_idx, p_idx, candidates
 
     def _feature_cloud(
-        self, xyz: np.ndarray, rings: np.ndarray, e_idx: np.ndarray, p_idx: np.ndarray
+        self,
+        xyz: np.ndarray,
+        rings: np.ndarray,
+        e_idx: np.ndarray,
+        p_idx: np.ndarray,
+        plane: tuple[np.ndarray, float] | None,
     ) -> FeatureCloud:
         """The features with their covariances (eq. (1), ring-aware supports) and, above
         ``max_registration_points``, the density-aware subset that is registered; with map
-        covariances from the map only the registered points need theirs."""
+        covariances from the map only the registered points need theirs. plane: the ground
+        the features are flattened on (``flatten_ground``), or None."""
         cfg, rc = self.cfg, self.cfg.registration
         src = np.concatenate([xyz[e_idx], xyz[p_idx]])
         src_idx = np.concatenate([e_idx, p_idx])
@@ -332,7 +391,6 @@ class ImprovedFloam(ScanToMapFrontend):
             threads=rc.threads,
         )
         q = src if rows is None else src[rows]
-        plane = scan_ground(xyz, rings, cfg.ground)
         if plane is not None:
             flatten_ground(q, covs, plane, cfg.ground)
         covs = add_beam_angle_noise(q, covs, np.radians(rc.beam_angle_noise))

@@ -108,6 +108,8 @@ def print_run_summary(summary: dict[str, Any]) -> None:
         )
     if warning := degenerate_warning(metrics, summary):
         eprint(f"warning: {warning}")
+    if warning := along_road_warning(metrics):
+        eprint(f"warning: {warning}")
     for note in summary.get("gt_notes") or []:
         eprint(f"note: {note}")
     for warning in summary.get("gt_warnings") or []:
@@ -119,6 +121,20 @@ def print_run_summary(summary: dict[str, Any]) -> None:
             + "  ".join(f"{k} {ape[k]:.4f}" for k in ("rmse", "mean", "median", "max") if k in ape)
         )
     eprint(f"outputs written to {out}/")
+
+
+def along_road_warning(metrics: dict[str, Any]) -> str | None:
+    """One line when most scans' features ran along one horizontal direction (an open road,
+    ``slam.features.scatter``) and the front end registered nothing else; else None."""
+    means = metrics.get("frontend_means") or {}
+    share = means.get("along_road") or 0.0
+    if share <= 0.5 or means.get("scatter_points"):
+        return None
+    return (
+        f"the features of {100 * share:.0f} % of the scans run along one direction (an open "
+        "road): the odometry may fall behind the motion along it; on motorways and country "
+        "roads use --config improved_floam_open_road (docs/robustness.md)"
+    )
 
 
 def degenerate_warning(metrics: dict[str, Any], summary: dict[str, Any]) -> str | None:

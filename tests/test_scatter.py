@@ -1,0 +1,89 @@
+"""The open-road measure and the scatter points (``slam.features.scatter``) on constructed
+covariances and clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam.errors import ConfigError
+from slam.features.scatter import ScatterConfig, horizontal_observability, scatter_points
+
+
+def _plane(n, spread: float = 1.0) -> np.ndarray:
+    """Covariance of a surface with unit normal n: 1e-4 m^2 along n, spread m^2 along it."""
+    n = np.asarray(n, float) / np.linalg.norm(n)
+    return 1e-4 * np.outer(n, n) + spread * (np.eye(3) - np.outer(n, n))
+
+
+def _line(u) -> np.ndarray:
+    u = np.asarray(u, float) / np.linalg.norm(u)
+    return 1e-4 * np.eye(3) + np.outer(u, u)
+
+
+def test_walls_facing_both_ways_observe_every_horizontal_direction():
+    covs = np.array([_plane([1, 0, 0])] * 50 + [_plane([0, 1, 0])] * 50)
+    assert horizontal_observability(covs) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_road_of_walls_rails_and_ground_observes_nothing_along_it():
+    """Barriers (normal y), the ground (normal z) and rails (lines along x): nothing
+    observes x; a pole (a vertical line) observes x and y alike."""
+    road = [_plane([0, 1, 0])] * 40 + [_plane([0, 0, 1])] * 40 + [_line([1, 0, 0])] * 20
+    assert horizontal_observability(np.array(road)) < 1e-6
+    pole = [_line([0, 0, 1])] * 10
+    assert horizontal_observability(np.array(road + pole)) == pytest.approx(10 / 70, rel=1e-3)
+
+
+def test_the_measure_does_not_depend_on_the_road_heading():
+    yaw = np.radians(37.0)
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    covs = np.array([_plane([0, 1, 0])] * 30 + [_plane([1, 0, 0])] * 10)
+    turned = np.einsum("ij,njk,lk->nil", R, covs, R)
+    assert horizontal_observability(turned) == pytest.approx(1 / 3, rel=1e-6)
+    assert horizontal_observability(covs) == pytest.approx(1 / 3, rel=1e-6)
+
+
+def test_isotropic_covariances_judge_nothing():
+    assert horizontal_observability(np.array([np.eye(3)] * 5)) == 1.0
+    with pytest.raises(ValueError):
+        horizontal_observability(np.zeros((4, 3)))
+
+
+def test_scatter_points_are_the_non_candidates_off_the_ground_one_per_voxel():
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(-10, 10, (400, 2)), np.full(400, -1.8)])
+    bush = rng.normal([5.0, 3.0, -1.0], 0.3, (300, 3))  # a bush, 0.8 m above the ground
+    wall = np.column_stack([np.full(200, 8.0), rng.uniform(-5, 5, 200), rng.uniform(-1.8, 1, 200)])
+    xyz = np.vstack([ground, bush, wall])
+    candidates = np.zeros(len(xyz), dtype=bool)
+    candidates[700:] = True  # the wall was picked as plane features
+    plane = (np.array([0.0, 0.0, 1.0]), 1.8)
+    cfg = ScatterConfig(enabled=True, voxel=0.5, min_height=0.3)
+    idx = scatter_points(xyz, candidates, plane, cfg)
+    assert np.all((idx >= 400) & (idx < 700))  # neither the ground nor the features
+    keys = np.floor(xyz[idx] / 0.5).astype(int)
+    assert len(np.unique(keys, axis=0)) == len(idx)  # one per voxel
+    assert len(idx) >= 8  # the bush spans several voxels
+    everything = scatter_points(xyz, candidates, None, cfg)  # no ground known: no height test
+    assert np.any(everything < 400)
+
+
+def test_scatter_settings_are_checked():
+    with pytest.raises(ConfigError):
+        ScatterConfig(voxel=0.0)
+    with pytest.raises(ConfigError):
+        ScatterConfig(min_height=-1.0)
+
+
+def test_slam_run_suggests_the_open_road_recipe_only_when_it_applies():
+    from slam.cli.run import along_road_warning
+
+    road = {"frontend_means": {"along_road": 0.88, "scatter_points": 0.0}}
+    assert "--config improved_floam_open_road" in along_road_warning(road)
+    assert "88 %" in along_road_warning(road)
+    city = {"frontend_means": {"along_road": 0.03, "scatter_points": 0.0}}
+    assert along_road_warning(city) is None
+    recipe = {"frontend_means": {"along_road": 0.88, "scatter_points": 2400.0}}
+    assert along_road_warning(recipe) is None  # it runs the recipe already
+    assert along_road_warning({}) is None  # other front ends report no such measure
