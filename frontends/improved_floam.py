@@ -18,6 +18,7 @@ from slam.features.curvature import covariance_curvature, kappa_from_neighbours
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.scatter import (
     ALONG_ROAD,
+    OpenRoadGate,
     ScatterConfig,
     horizontal_observability,
     scatter_points,
@@ -40,6 +41,7 @@ from slam.registration.gicp import (
 )
 from slam.registration.ground_plane import (
     GroundPlaneConfig,
+    enough_beams,
     fit_ground,
     flatten_ground,
     on_ground,
@@ -238,6 +240,7 @@ class ImprovedFloam(ScanToMapFrontend):
         self._scan_filter = ScanFilter(self.cfg, threaded=self.cfg.filter_ahead)
         self._filtered: Filtered | None = None
         self._calibration = BeamCalibration(self.cfg.beam_calibration)
+        self._open_road = OpenRoadGate(self.cfg.scatter)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         # the map refresh of the previous scan runs on the other core meanwhile
@@ -278,41 +281,42 @@ class ImprovedFloam(ScanToMapFrontend):
             return est
 
         t = time.perf_counter()
-        gc, sc = self.cfg.ground, self.cfg.scatter
+        gc, open_road = self.cfg.ground, self._open_road.on
         plane = fit_ground(flt.xyz, gc) if gc.enabled else None
         extra = np.zeros(0, dtype=np.int64)
-        if sc.enabled:  # after the features: the first n_feat points stay the features
-            extra = scatter_points(flt.xyz, candidates, plane, sc)
+        if open_road:  # after the features: the first n_feat points stay the features
+            extra = scatter_points(flt.xyz, candidates, plane, self.cfg.scatter)
         n_feat = len(e_idx) + len(p_idx)
-        beams = int(rings.max()) + 1 if len(rings) else 0
-        flatten = plane if beams >= gc.min_beams else None
+        flatten = plane if open_road or enough_beams(rings, gc) else None
         est.pending = self._feature_cloud(
             flt.xyz, rings, e_idx, np.concatenate([p_idx, extra]), flatten
         )
-        seen = self._observability(est.pending, n_feat, plane)
+        seen, n_registered = self._observability(est.pending, n_feat, plane)
+        self._open_road.update(seen < ALONG_ROAD)
         counts.update(
             horizontal_observability=seen,
             along_road=int(seen < ALONG_ROAD),
+            open_road=int(open_road),
             scatter_points=int(len(extra)),
-            n_registered=int(len(est.pending.registration_source()[0])),
+            n_registered=n_registered,
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
     def _observability(
         self, fc: FeatureCloud, n_feat: int, plane: tuple[np.ndarray, float] | None
-    ) -> float:
+    ) -> tuple[float, int]:
         """``horizontal_observability`` of the registered features (the first n_feat points
         of ``fc``) off the ground ``plane``: flattened or not, the ground observes no
         horizontal motion, so every sensor is judged alike. At most ~500 covariances (an
-        even subsample, ~1 ms): a statistic of the scan."""
+        even subsample, ~1 ms): a statistic of the scan. Also the number registered."""
         src, covs = fc.registration_source()
         reg = np.arange(len(fc.points)) if fc.registered is None else fc.registered
         keep = reg < n_feat
         if plane is not None:
             keep &= ~on_ground(src, plane, self.cfg.ground.band)
         rows = np.flatnonzero(keep)
-        return horizontal_observability(covs[rows[:: max(1, len(rows) // 500)]])
+        return horizontal_observability(covs[rows[:: max(1, len(rows) // 500)]]), len(src)
 
     def look_ahead(self, scan: Scan) -> None:
         self._scan_filter.ahead(scan)

@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from slam.errors import ConfigError
-from slam.features.scatter import ScatterConfig, horizontal_observability, scatter_points
+from slam.features.scatter import (
+    OpenRoadGate,
+    ScatterConfig,
+    horizontal_observability,
+    scatter_points,
+)
 
 
 def _plane(n, spread: float = 1.0) -> np.ndarray:
@@ -59,7 +64,7 @@ def test_scatter_points_are_the_non_candidates_off_the_ground_one_per_voxel():
     candidates = np.zeros(len(xyz), dtype=bool)
     candidates[700:] = True  # the wall was picked as plane features
     plane = (np.array([0.0, 0.0, 1.0]), 1.8)
-    cfg = ScatterConfig(enabled=True, voxel=0.5, min_height=0.3)
+    cfg = ScatterConfig(voxel=0.5, min_height=0.3)
     idx = scatter_points(xyz, candidates, plane, cfg)
     assert np.all((idx >= 400) & (idx < 700))  # neither the ground nor the features
     keys = np.floor(xyz[idx] / 0.5).astype(int)
@@ -74,6 +79,38 @@ def test_scatter_settings_are_checked():
         ScatterConfig(voxel=0.0)
     with pytest.raises(ConfigError):
         ScatterConfig(min_height=-1.0)
+    with pytest.raises(ConfigError, match="never, always, auto"):
+        ScatterConfig(mode="on")
+    with pytest.raises(ConfigError):
+        ScatterConfig(on_share=0.2, off_share=0.5)
+
+
+def _gate_run(flags, **kw) -> list[bool]:
+    """The gate's mode for each scan, decided before that scan's flag is known."""
+    gate, out = OpenRoadGate(ScatterConfig(**kw)), []
+    for f in flags:
+        out.append(gate.on)
+        gate.update(f)
+    return out
+
+
+def test_the_open_road_mode_follows_the_stretch_not_the_scan():
+    """On from the scan after the first along-road scan of a run (a motorway from the
+    start); held through 40 scans whose features look observable (a simulated motorway's
+    woods and junctions, where LOAM features alone still stall); off once fewer than 20 of
+    the last 100 scans ran along the road; never on a city drive whose along-road scans
+    come singly."""
+    motorway = [True] * 30 + [False] * 40 + [True] * 30 + [False] * 200
+    modes = _gate_run(motorway)
+    assert modes[0] is False and all(modes[1:181])
+    assert not any(modes[181:])  # at scan 180, 19 of the last 100 ran along the road
+    assert not all(_gate_run(motorway, hold=20)[1:70])  # a short memory drops it in the wood
+    city = [k % 50 == 7 for k in range(500)]  # one along-road scan in 50
+    assert not any(_gate_run(city)[10:])
+    starts_along = _gate_run([True] + [False] * 20)  # the first scan is all the gate knows
+    assert starts_along[1] is True and not any(starts_along[7:])
+    assert not any(_gate_run(motorway, mode="never"))
+    assert all(_gate_run([False] * 10, mode="always"))
 
 
 def test_slam_run_suggests_the_open_road_recipe_only_when_it_applies():
@@ -87,3 +124,11 @@ def test_slam_run_suggests_the_open_road_recipe_only_when_it_applies():
     recipe = {"frontend_means": {"along_road": 0.88, "scatter_points": 2400.0}}
     assert along_road_warning(recipe) is None  # it runs the recipe already
     assert along_road_warning({}) is None  # other front ends report no such measure
+
+
+def test_slam_run_says_when_the_open_road_mode_was_on():
+    from slam.cli.run import open_road_line
+
+    assert "52 % of the scans" in open_road_line({"frontend_means": {"open_road": 0.52}})
+    assert open_road_line({"frontend_means": {"open_road": 0.0}}) is None
+    assert open_road_line({}) is None

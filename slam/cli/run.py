@@ -110,6 +110,8 @@ def print_run_summary(summary: dict[str, Any]) -> None:
         eprint(f"warning: {warning}")
     if warning := along_road_warning(metrics):
         eprint(f"warning: {warning}")
+    if line := open_road_line(metrics):
+        eprint(line)
     for note in summary.get("gt_notes") or []:
         eprint(f"note: {note}")
     for warning in summary.get("gt_warnings") or []:
@@ -125,7 +127,8 @@ def print_run_summary(summary: dict[str, Any]) -> None:
 
 def along_road_warning(metrics: dict[str, Any]) -> str | None:
     """One line when most scans' features ran along one horizontal direction (an open road,
-    ``slam.features.scatter``) and the front end registered nothing else; else None."""
+    ``slam.features.scatter``) and the front end registered nothing else (its open-road
+    mode set to ``never``); else None."""
     means = metrics.get("frontend_means") or {}
     share = means.get("along_road") or 0.0
     if share <= 0.5 or means.get("scatter_points"):
@@ -133,7 +136,20 @@ def along_road_warning(metrics: dict[str, Any]) -> str | None:
     return (
         f"the features of {100 * share:.0f} % of the scans run along one direction (an open "
         "road): the odometry may fall behind the motion along it; on motorways and country "
-        "roads use --config improved_floam_open_road (docs/robustness.md)"
+        "roads leave frontend.scatter.mode at auto or use --config improved_floam_open_road "
+        "(docs/robustness.md)"
+    )
+
+
+def open_road_line(metrics: dict[str, Any]) -> str | None:
+    """One line saying for what share of the scans the front end's open-road mode was on
+    (``frontend.scatter.mode``); None when it never was."""
+    share = (metrics.get("frontend_means") or {}).get("open_road") or 0.0
+    if share <= 0:
+        return None
+    return (
+        f"open road: the front end also registered the points its features leave out on "
+        f"{100 * share:.0f} % of the scans (frontend.scatter.mode; docs/robustness.md)"
     )
 
 

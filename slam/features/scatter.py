@@ -13,6 +13,7 @@ translation; ``scatter_points`` picks the points LOAM left out, off the ground.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,20 +31,65 @@ _SHAPE_RATIO = 0.1
 ALONG_ROAD = 0.1
 
 
+_MODES = ("never", "always", "auto")  # words YAML reads as strings
+
+
 @dataclass
 class ScatterConfig:
-    """enabled: register, with the features, the points that are neither edge nor plane
-    candidates and lie more than ``min_height`` m off the scan's ground plane, one per
-    ``voxel`` m (the recipe ``improved_floam_open_road``; off by default: on a city drive
-    they cost accuracy, docs/robustness.md)."""
+    """The open-road mode: register, with the features, the points that are neither edge nor
+    plane candidates and lie more than ``min_height`` m off the scan's ground plane, one per
+    ``voxel`` m, and treat the ground as a plane on every sensor.
+    mode: ``never``; ``always`` (the recipe ``improved_floam_open_road``); ``auto`` (default,
+    ``OpenRoadGate``): on once the features of at least ``on_share`` of the last ``window``
+    scans ran along the road, off once fewer than ``off_share`` of the last ``hold`` scans
+    did (on a city drive the mode costs accuracy, docs/robustness.md)."""
 
-    enabled: bool = False
+    mode: str = "auto"
     voxel: float = 0.5
     min_height: float = 0.3
+    window: int = 20
+    on_share: float = 0.5
+    hold: int = 100
+    off_share: float = 0.2
 
     def __post_init__(self) -> None:
+        if self.mode not in _MODES:
+            raise ConfigError(f"scatter.mode must be one of {', '.join(_MODES)}, got {self.mode!r}")
         if self.voxel <= 0 or self.min_height < 0:
             raise ConfigError("scatter: voxel must be > 0 m and min_height >= 0 m")
+        if not 1 <= self.window <= self.hold or not 0 <= self.off_share <= self.on_share <= 1:
+            raise ConfigError(
+                "scatter: need 1 <= window <= hold (scans) and 0 <= off_share <= on_share <= 1"
+            )
+
+
+class OpenRoadGate:
+    """Whether the open-road mode is on for the next scan. An open road is a stretch, not a
+    scan: switched on quickly (``on_share`` of the last ``window`` scans ran along the road),
+    held through the bridges, junctions and woods of a motorway whose features then look
+    observable but still hold the scan back (off below ``off_share`` of the last ``hold``
+    scans; docs/robustness.md). Deterministic: flags in, mode out."""
+
+    def __init__(self, cfg: ScatterConfig):
+        self.cfg = cfg
+        self._flags: deque[bool] = deque(maxlen=cfg.hold)
+        self._on = cfg.mode == "always"
+
+    @property
+    def on(self) -> bool:
+        """The mode for the scan about to be registered."""
+        return self._on
+
+    def update(self, along_road: bool) -> None:
+        """Record one scan's flag and decide the mode of the next."""
+        if self.cfg.mode != "auto":
+            return
+        self._flags.append(bool(along_road))
+        recent = list(self._flags)[-self.cfg.window :]
+        if sum(recent) >= self.cfg.on_share * len(recent):
+            self._on = True
+        elif sum(self._flags) < self.cfg.off_share * len(self._flags):
+            self._on = False
 
 
 def horizontal_observability(covs: np.ndarray) -> float:

@@ -103,14 +103,18 @@ def fit_ground(xyz: np.ndarray, cfg: GroundPlaneConfig) -> tuple[np.ndarray, flo
     return n, float(d)
 
 
+def enough_beams(rings: np.ndarray | None, cfg: GroundPlaneConfig) -> bool:
+    """Whether a scan of these rings ((N,) beam indices) comes from a sensor of ``min_beams``
+    or more."""
+    return rings is not None and len(rings) > 0 and int(rings.max()) + 1 >= cfg.min_beams
+
+
 def scan_ground(
     xyz: np.ndarray, rings: np.ndarray | None, cfg: GroundPlaneConfig
 ) -> tuple[np.ndarray, float] | None:
     """``fit_ground`` of a scan whose sensor has ``min_beams`` or more (rings (N,) beam
     indices), when ``enabled``; else None."""
-    if not cfg.enabled or rings is None or not len(rings):
-        return None
-    if int(rings.max()) + 1 < cfg.min_beams:
+    if not cfg.enabled or not enough_beams(rings, cfg):
         return None
     return fit_ground(xyz, cfg)
 
