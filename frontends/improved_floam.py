@@ -189,13 +189,19 @@ class ImprovedFloamConfig(CommonConfig):
 class FeatureCloud:
     """Sensor-frame features (m) with their eq. (1) covariances: what the map receives.
     covs: of ``points[rows]`` (rows None: of every point); registered: the indices of the
-    points registered (None: all)."""
+    points registered (None: all); n_features: the points before it are edges and planes,
+    the rest the open-road mode's scatter points (None: all are features)."""
 
     points: np.ndarray
     covs: np.ndarray
     rows: np.ndarray | None = None
     registered: np.ndarray | None = None
     rings: np.ndarray | None = None  # the beam of each point
+    n_features: int | None = None
+
+    def scatter(self) -> np.ndarray:
+        """The open-road mode's scatter points (M, 3, sensor frame; M may be 0)."""
+        return self.points[len(self.points) if self.n_features is None else self.n_features :]
 
     def registered_rings(self) -> np.ndarray | None:
         """The beams of the registered points."""
@@ -255,6 +261,7 @@ class ImprovedFloam(ScanToMapFrontend):
         if len(self._map) >= 10:
             est.result = self._align(src, covs, T_pred, wide, self._motion_prior(T_pred))
             est.pose = est.result.T_target_source
+            est.evidence = self._scatter_evidence(est.pending, est.pose)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
@@ -281,42 +288,81 @@ class ImprovedFloam(ScanToMapFrontend):
             return est
 
         t = time.perf_counter()
-        gc, open_road = self.cfg.ground, self._open_road.on
+        gc, gate = self.cfg.ground, self._open_road
         plane = fit_ground(flt.xyz, gc) if gc.enabled else None
-        extra = np.zeros(0, dtype=np.int64)
-        if open_road:  # after the features: the first n_feat points stay the features
-            extra = scatter_points(flt.xyz, candidates, plane, self.cfg.scatter)
+        first, open_road = gate.unjudged, gate.on
+        build = (flt.xyz, rings, e_idx, p_idx, candidates, plane)
+        est.pending = self._open_road_cloud(*build, open_road)
         n_feat = len(e_idx) + len(p_idx)
-        flatten = plane if open_road or enough_beams(rings, gc) else None
-        est.pending = self._feature_cloud(
-            flt.xyz, rings, e_idx, np.concatenate([p_idx, extra]), flatten
-        )
-        seen, n_registered = self._observability(est.pending, n_feat, plane)
-        self._open_road.update(seen < ALONG_ROAD)
+        seen = self._observability(est.pending, n_feat, plane)
+        gate.update(seen < ALONG_ROAD)
+        if first and gate.on != open_road:  # the first scan of a run is judged by itself
+            open_road = gate.on
+            est.pending = self._open_road_cloud(*build, open_road)
         counts.update(
             horizontal_observability=seen,
             along_road=int(seen < ALONG_ROAD),
             open_road=int(open_road),
-            scatter_points=int(len(extra)),
-            n_registered=n_registered,
+            scatter_points=int(len(est.pending.points) - n_feat),
+            n_registered=int(len(est.pending.registration_source()[0])),
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
     def _observability(
         self, fc: FeatureCloud, n_feat: int, plane: tuple[np.ndarray, float] | None
-    ) -> tuple[float, int]:
+    ) -> float:
         """``horizontal_observability`` of the registered features (the first n_feat points
         of ``fc``) off the ground ``plane``: flattened or not, the ground observes no
         horizontal motion, so every sensor is judged alike. At most ~500 covariances (an
-        even subsample, ~1 ms): a statistic of the scan. Also the number registered."""
+        even subsample, ~1 ms): a statistic of the scan."""
         src, covs = fc.registration_source()
         reg = np.arange(len(fc.points)) if fc.registered is None else fc.registered
         keep = reg < n_feat
         if plane is not None:
             keep &= ~on_ground(src, plane, self.cfg.ground.band)
         rows = np.flatnonzero(keep)
-        return horizontal_observability(covs[rows[:: max(1, len(rows) // 500)]]), len(src)
+        return horizontal_observability(covs[rows[:: max(1, len(rows) // 500)]])
+
+    def _open_road_cloud(
+        self,
+        xyz: np.ndarray,
+        rings: np.ndarray,
+        e_idx: np.ndarray,
+        p_idx: np.ndarray,
+        candidates: np.ndarray,
+        plane: tuple[np.ndarray, float] | None,
+        open_road: bool,
+    ) -> FeatureCloud:
+        """``_feature_cloud`` of the features and, in the open-road mode, the scatter points
+        after them with the ground a plane on any sensor."""
+        extra = np.zeros(0, dtype=np.int64)
+        if open_road:
+            extra = scatter_points(xyz, candidates, plane, self.cfg.scatter)
+        flatten = plane if open_road or enough_beams(rings, self.cfg.ground) else None
+        fc = self._feature_cloud(xyz, rings, e_idx, np.concatenate([p_idx, extra]), flatten)
+        fc.n_features = len(e_idx) + len(p_idx)
+        return fc
+
+    def _scan_state(self) -> object:
+        return self._open_road.state()
+
+    def _restore_scan_state(self, state: object) -> None:
+        self._open_road.restore(state)
+
+    def _scatter_evidence(self, fc: FeatureCloud, T: np.ndarray) -> tuple[int, float] | None:
+        """(pairs, RMSE m) of the open-road mode's scatter points at pose ``T`` against the
+        map (nearest point within ``max_correspondence``): the start search judges a start
+        by them, as the features' ring samples fit the pose at rest as well as the moving
+        one (docs/robustness.md, "16 beams on a motorway"). None outside the mode."""
+        pts = fc.scatter()
+        if not len(pts):
+            return None
+        d, _ = self._map.query(
+            transform(T, pts), distance_upper_bound=self.cfg.registration.max_correspondence
+        )
+        d = d[np.isfinite(d)]
+        return int(len(d)), float(np.sqrt(np.mean(d**2))) if len(d) else np.inf
 
     def look_ahead(self, scan: Scan) -> None:
         self._scan_filter.ahead(scan)

@@ -125,10 +125,11 @@ def test_sixteen_beams_on_an_open_road_switch_the_open_road_mode_on(scene):
     without ring and time): the ground, barriers, rails and verges all run along the road,
     so their ring samples hold a front end of LOAM features where the map was made (mode
     ``never``: measured at -0.44 m, and ``slam run`` names the open-road recipe). The default
-    sees every scan's features run along the road and switches the open-road mode on from
-    the second scan: it also registers the vegetation LOAM leaves out and flattens the
-    16-beam ground, and follows the car (measured 0.75 m behind after 18.0 m, every step
-    within 6.5 cm; docs/robustness.md, "16 beams on a motorway")."""
+    sees every scan's features run along the road, the first judged by itself, and is in
+    the open-road mode from the first scan: it also registers the vegetation LOAM leaves out
+    and flattens the 16-beam ground, and follows the car (measured 0.75 m behind after
+    18.0 m, every step within 6.5 cm; docs/robustness.md, "16 beams on a motorway"), as the
+    recipe that keeps the mode on does, to the bit."""
     scans, gt = _scans(scene, 0, 60, "vlp16")
     true_x = (np.linalg.inv(gt[0]) @ gt[-1])[0, 3]
     outs, _ = run_frontend(scans, "improved_floam", ["frontend.scatter.mode=never"])
@@ -139,13 +140,11 @@ def test_sixteen_beams_on_an_open_road_switch_the_open_road_mode_on(scene):
 
     outs, _ = run_frontend(scans, "improved_floam", [])
     flags = [o.diagnostics.flat() for o in outs]
-    assert [f["open_road"] for f in flags[:2]] == [0, 1]
-    assert all(f["open_road"] == 1 and f["scatter_points"] > 100 for f in flags[1:])
+    assert all(f["open_road"] == 1 and f["scatter_points"] > 100 for f in flags)
     assert abs(outs[-1].pose[0, 3] - true_x) < 1.5
     est = np.array([o.pose for o in outs])
     step_e = np.linalg.inv(est[:-1]) @ est[1:]
     step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
     assert np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1).max() < 0.15
-    recipe, _ = run_frontend(scans, "improved_floam_open_road", [])  # on from the first scan
-    assert all(o.diagnostics.flat()["open_road"] == 1 for o in recipe)
-    assert abs(recipe[-1].pose[0, 3] - true_x) < 1.5
+    recipe, _ = run_frontend(scans, "improved_floam_open_road", [])
+    assert all(np.array_equal(a.pose, b.pose) for a, b in zip(recipe, outs, strict=True))

@@ -194,6 +194,23 @@ def test_a_start_that_pairs_slightly_fewer_points_much_tighter_explains_more():
     assert start_beats(true, alias, c) and not start_beats(alias, true, c)
 
 
+def test_a_front_end_may_judge_starts_by_its_own_evidence():
+    """On an open road the features' ring samples fit the pose at rest as well as the moving
+    one; improved_floam then judges a start by its scatter points (``Estimate.evidence``):
+    the registration's own numbers would keep the rest, the evidence picks the step."""
+    from slam.odometry.estimate import Estimate
+    from slam.odometry.search import evidence, most_explained, start_beats
+
+    c = CommonConfig()
+    rest = Estimate(pose(0.02), result=result(rmse=0.20, inliers=3000, source=3500))
+    step = Estimate(pose(2.10), result=result(rmse=0.21, inliers=2980, source=3500))
+    assert not start_beats(step, rest, c)
+    rest.evidence, step.evidence = (600, 0.42), (900, 0.30)
+    assert evidence(step) == (900, 0.30)
+    assert start_beats(step, rest, c) and not start_beats(rest, step, c)
+    assert most_explained([(rest, np.eye(4)), (step, np.eye(4))])[0] is step
+
+
 def test_start_hypotheses_search_forward_and_backward_up_to_the_speed_cap():
     m = MotionModel(CommonConfig(start_max_speed=40.0, start_speed_step=20.0), SweepClock())
     m.T_last = pose(5.0)

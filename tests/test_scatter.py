@@ -110,6 +110,20 @@ def test_the_open_road_mode_follows_the_stretch_not_the_scan():
     starts_along = _gate_run([True] + [False] * 20)  # the first scan is all the gate knows
     assert starts_along[1] is True and not any(starts_along[7:])
     assert not any(_gate_run(motorway, mode="never"))
+
+
+def test_a_scan_registered_from_several_starts_counts_once():
+    """The start search registers one scan from several starts: the front end restores the
+    gate before each (``state`` / ``restore``), so the scan's flag is recorded once."""
+    gate = OpenRoadGate(ScatterConfig())
+    assert gate.unjudged
+    gate.update(False)
+    saved = gate.state()
+    for _ in range(9):
+        gate.restore(saved)
+        gate.update(True)
+    assert gate.state() == ((False, True), True) and not gate.unjudged
+    assert not OpenRoadGate(ScatterConfig(mode="always")).unjudged
     assert all(_gate_run([False] * 10, mode="always"))
 
 

@@ -80,6 +80,20 @@ class OpenRoadGate:
         """The mode for the scan about to be registered."""
         return self._on
 
+    @property
+    def unjudged(self) -> bool:
+        """No scan recorded yet: the first scan of a run is judged by itself."""
+        return self.cfg.mode == "auto" and not self._flags
+
+    def state(self) -> tuple[tuple[bool, ...], bool]:
+        """What ``update`` changes, for a front end that registers one scan several times."""
+        return tuple(self._flags), self._on
+
+    def restore(self, state: tuple[tuple[bool, ...], bool]) -> None:
+        """Back to a ``state()``."""
+        flags, self._on = state
+        self._flags = deque(flags, maxlen=self.cfg.hold)
+
     def update(self, along_road: bool) -> None:
         """Record one scan's flag and decide the mode of the next."""
         if self.cfg.mode != "auto":

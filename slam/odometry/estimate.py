@@ -24,7 +24,8 @@ class Estimate(Generic[MapUpdate]):
     None. filtered: the filtered scan (sensor frame, m) the keyframe cloud is made of (None:
     the cropped, deskewed scan). ground_plane: (4,) [nx, ny, nz, d] in the sensor frame, or
     None. counts: the front end's scalar diagnostics. information: the registration's,
-    computed by the frame loop.
+    computed by the frame loop. evidence: (pairs, RMSE m) of the points the front end
+    judges a start by, when not the registration's own (``slam.odometry.search``).
     """
 
     pose: np.ndarray
@@ -35,6 +36,7 @@ class Estimate(Generic[MapUpdate]):
     ground_plane: np.ndarray | None = None
     counts: dict[str, float] = field(default_factory=dict)
     information: Information | None = None
+    evidence: tuple[int, float] | None = None
 
     @property
     def H(self) -> np.ndarray | None:

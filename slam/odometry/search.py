@@ -44,15 +44,24 @@ def explains_better(est: Estimate, base: Estimate, c: CommonConfig) -> float:
     near rest pairs as many points or more, only loosely (street at 7.6 m/s: rest 6754 pairs,
     RMSE 0.30 m; the true step 6601, 0.25 m), while along a plain street a slid alignment
     pairs fewer points tighter."""
-    gain = est.result.num_inliers / max(base.result.num_inliers, 1) - 1.0
-    tighter = 1.0 - est.result.rmse / max(base.result.rmse, 1e-12)
+    (n, rmse), (n0, rmse0) = evidence(est), evidence(base)
+    gain = n / max(n0, 1) - 1.0
+    tighter = 1.0 - rmse / max(rmse0, 1e-12)
     return gain + c.start_rmse_weight * tighter
+
+
+def evidence(est: Estimate) -> tuple[int, float]:
+    """(pairs, RMSE m) a start is judged by: the front end's ``est.evidence`` (e.g. the
+    points that show the motion along an open road) or the registration's."""
+    if est.evidence is not None:
+        return est.evidence
+    return est.result.num_inliers, est.result.rmse
 
 
 def most_explained(tried: Tried) -> tuple[Estimate, np.ndarray]:
     """The registration with the most correspondences (the consensus; fitness breaks ties):
     along a street the wrong alignments fit tighter but on fewer points."""
-    return max(tried, key=lambda et: (et[0].result.num_inliers, -et[0].result.rmse))
+    return max(tried, key=lambda et: (evidence(et[0])[0], -evidence(et[0])[1]))
 
 
 class StartSearch:
