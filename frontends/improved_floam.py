@@ -136,10 +136,11 @@ class ImprovedFloamConfig(CommonConfig):
     ground: source features on the scan's ground plane constrain only along its normal
     (``slam.registration.ground_plane``; sensors of ``ground.min_beams`` or more): the rings'
     pattern moves with the sensor.
-    scatter: also register the points LOAM's selection leaves out (vegetation, clutter) off
-    the ground (``slam.features.scatter``; the recipe ``improved_floam_open_road``). Every
-    scan reports ``horizontal_observability`` of its features and ``along_road`` (1 below
-    ``slam.features.scatter.ALONG_ROAD``).
+    scatter: the open-road mode (``slam.features.scatter``): also register the points LOAM's
+    selection leaves out (vegetation, clutter) off the ground, the ground a plane on any
+    sensor; ``mode`` auto switches it by the recent scans' ``along_road`` (1 below
+    ``slam.features.scatter.ALONG_ROAD`` of ``horizontal_observability``), which every scan
+    reports with ``open_road``.
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -293,8 +294,7 @@ class ImprovedFloam(ScanToMapFrontend):
         first, open_road = gate.unjudged, gate.on
         build = (flt.xyz, rings, e_idx, p_idx, candidates, plane)
         est.pending = self._open_road_cloud(*build, open_road)
-        n_feat = len(e_idx) + len(p_idx)
-        seen = self._observability(est.pending, n_feat, plane)
+        seen = self._observability(est.pending, plane)
         gate.update(seen < ALONG_ROAD)
         if first and gate.on != open_road:  # the first scan of a run is judged by itself
             open_road = gate.on
@@ -303,22 +303,20 @@ class ImprovedFloam(ScanToMapFrontend):
             horizontal_observability=seen,
             along_road=int(seen < ALONG_ROAD),
             open_road=int(open_road),
-            scatter_points=int(len(est.pending.points) - n_feat),
+            scatter_points=int(len(est.pending.scatter())),
             n_registered=int(len(est.pending.registration_source()[0])),
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
-    def _observability(
-        self, fc: FeatureCloud, n_feat: int, plane: tuple[np.ndarray, float] | None
-    ) -> float:
-        """``horizontal_observability`` of the registered features (the first n_feat points
-        of ``fc``) off the ground ``plane``: flattened or not, the ground observes no
+    def _observability(self, fc: FeatureCloud, plane: tuple[np.ndarray, float] | None) -> float:
+        """``horizontal_observability`` of the registered features (not the scatter points)
+        of ``fc`` off the ground ``plane``: flattened or not, the ground observes no
         horizontal motion, so every sensor is judged alike. At most ~500 covariances (an
         even subsample, ~1 ms): a statistic of the scan."""
         src, covs = fc.registration_source()
         reg = np.arange(len(fc.points)) if fc.registered is None else fc.registered
-        keep = reg < n_feat
+        keep = reg < len(fc.points) - len(fc.scatter())
         if plane is not None:
             keep &= ~on_ground(src, plane, self.cfg.ground.band)
         rows = np.flatnonzero(keep)
