@@ -25,6 +25,7 @@ from slam.features.scatter import (
 )
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
+from slam.mapping.second_sighting import SecondSighting
 from slam.mapping.stale_covariances import FreshCovarianceMap, mark_stale
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.odometry.config import check_positive
@@ -199,6 +200,9 @@ class FeatureCloud:
     registered: np.ndarray | None = None
     rings: np.ndarray | None = None  # the beam of each point
     n_features: int | None = None
+    # the open-road mode's ground plane (n, d: n.x + d = 0) and whether the mode was on
+    plane: tuple[np.ndarray, float] | None = None
+    open_road: bool = False
 
     def scatter(self) -> np.ndarray:
         """The open-road mode's scatter points (M, 3, sensor frame; M may be 0)."""
@@ -248,6 +252,8 @@ class ImprovedFloam(ScanToMapFrontend):
         self._filtered: Filtered | None = None
         self._calibration = BeamCalibration(self.cfg.beam_calibration)
         self._open_road = OpenRoadGate(self.cfg.scatter)
+        sc = self.cfg.scatter
+        self._sighting = SecondSighting(sc.confirm_distance, sc.confirm_height)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         # the map refresh of the previous scan runs on the other core meanwhile
@@ -340,6 +346,7 @@ class ImprovedFloam(ScanToMapFrontend):
         flatten = plane if open_road or enough_beams(rings, self.cfg.ground) else None
         fc = self._feature_cloud(xyz, rings, e_idx, np.concatenate([p_idx, extra]), flatten)
         fc.n_features = len(e_idx) + len(p_idx)
+        fc.plane, fc.open_road = (plane if open_road else None), open_road
         return fc
 
     def _scan_state(self) -> object:
@@ -502,15 +509,34 @@ class ImprovedFloam(ScanToMapFrontend):
             rotated = np.einsum("ij,njk,lk->nil", R, fc.covs, R)
         if self.cfg.beam_calibration.enabled:
             self._calibrate(fc, T)
-        n_new = self._map.add(fc.points @ R.T + T[:3, 3], rotated, T[:3, 3])
+        world = fc.points @ R.T + T[:3, 3]
+        rows = self._confirmed(fc, world)
+        if rows is not None:
+            est.counts["unconfirmed"] = int(len(world) - len(rows))
+            world, rotated = world[rows], rotated[rows]
+        n_new = self._map.add(world, rotated, T[:3, 3])
         if not (from_map and n_new):
             return
         if len(self._map) < rc.k_covariance:  # too few points for eq. (1): the source's
             acc = self._map.last_accepted
-            covs = fc.all_covs(cfg.plane_voxel)[acc]
+            covs = fc.all_covs(cfg.plane_voxel)
+            covs = (covs if rows is None else covs[rows])[acc]
             self._map.covs[len(self._map) - n_new :] = np.einsum("ij,njk,lk->nil", R, covs, R)
         else:
             self._map_job.submit(lambda: self._timed_refresh(n_new))
+
+    def _confirmed(self, fc: FeatureCloud, world: np.ndarray) -> np.ndarray | None:
+        """In the open-road mode, the rows of ``world`` (the scan's points in the odometry
+        frame) that the previous inserted scan confirms, the ground always
+        (``SecondSighting``); None: every row (the mode off, or all confirmed)."""
+        if not (fc.open_road and self.cfg.scatter.confirm_distance > 0):
+            self._sighting.reset()
+            return None
+        ground = np.zeros(len(world), dtype=bool)
+        if fc.plane is not None:
+            ground = on_ground(fc.points, fc.plane, self.cfg.ground.band)
+        keep = self._sighting.keep(world, ground)
+        return None if keep.all() else np.flatnonzero(keep)
 
     def _calibrate(self, fc: FeatureCloud, T: np.ndarray) -> None:
         """Measure the beams' offsets on the accepted registration at ``T``: its registered

@@ -42,7 +42,10 @@ class ScatterConfig:
     mode: ``never``; ``always`` (the recipe ``improved_floam_open_road``); ``auto`` (default,
     ``OpenRoadGate``): on once the features of at least ``on_share`` of the last ``window``
     scans ran along the road, off once fewer than ``off_share`` of the last ``hold`` scans
-    did (on a city drive the mode costs accuracy, docs/robustness.md)."""
+    did (on a city drive the mode costs accuracy, docs/robustness.md).
+    confirm_distance, confirm_height (m): in the mode a point enters the map only when the
+    previous inserted scan had one within that distance horizontally and height vertically
+    (``slam.mapping.second_sighting``: the traffic stays out of the map; 0 = off)."""
 
     mode: str = "auto"
     voxel: float = 0.5
@@ -51,6 +54,8 @@ class ScatterConfig:
     on_share: float = 0.5
     hold: int = 100
     off_share: float = 0.2
+    confirm_distance: float = 0.5
+    confirm_height: float = 1.0
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -61,6 +66,8 @@ class ScatterConfig:
             raise ConfigError(
                 "scatter: need 1 <= window <= hold (scans) and 0 <= off_share <= on_share <= 1"
             )
+        if self.confirm_distance < 0 or self.confirm_height <= 0:
+            raise ConfigError("scatter: confirm_distance must be >= 0 m, confirm_height > 0 m")
 
 
 class OpenRoadGate:
