@@ -27,7 +27,9 @@ def seen_before(
     if not len(points) or not len(previous):
         return np.zeros(len(points), dtype=bool)
     scale = np.array([1.0, 1.0, distance / height])
-    d, _ = cKDTree(previous * scale).query(points * scale, k=1, distance_upper_bound=distance)
+    # scipy's unbalanced build is the cheapest for one query per point (slam.preprocess.knn)
+    tree = cKDTree(previous * scale, leafsize=16, balanced_tree=False, compact_nodes=False)
+    d, _ = tree.query(points * scale, k=1, distance_upper_bound=distance)
     return np.isfinite(d)
 
 
