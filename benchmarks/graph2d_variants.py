@@ -69,8 +69,11 @@ def _sigmas(f: gtsam.BetweenFactorPose2) -> np.ndarray:
     return (model.noise() if isinstance(model, gtsam.noiseModel.Robust) else model).sigmas()
 
 
-def variants() -> dict[str, Callable[[gtsam.BetweenFactorPose2], gtsam.BetweenFactorPose2]]:
-    """Name -> how each factor is rewritten."""
+def variants(
+    turn: np.ndarray,
+) -> dict[str, Callable[[gtsam.BetweenFactorPose2], gtsam.BetweenFactorPose2]]:
+    """Name -> how each factor is rewritten; turn (rad): the front end's absolute turn
+    over the stretch ending at each keyframe."""
 
     def odometry(fn):
         return lambda f: f if is_loop(f) else _rebuilt(f, fn(f))
@@ -82,6 +85,14 @@ def variants() -> dict[str, Callable[[gtsam.BetweenFactorPose2], gtsam.BetweenFa
         length = float(np.hypot(f.measured().x(), f.measured().y()))
         return np.array([0.002 + 0.003 * length] * 2 + [np.radians(0.05 + 0.05 * length)])
 
+    def turning(c):  # translation sigma widened by c (m per rad) x the stretch's turn
+        def fn(f):
+            s = _sigmas(f).copy()
+            s[:2] = np.hypot(s[:2], c * turn[max(int(k) for k in f.keys())])
+            return s
+
+        return fn
+
     cap = np.array([0.01, 0.01, 0.004])
     return {
         "as given": lambda f: f,
@@ -91,6 +102,9 @@ def variants() -> dict[str, Callable[[gtsam.BetweenFactorPose2], gtsam.BetweenFa
         "loop sigmas x 2": loops(2.0),
         "loop sigmas x 4": loops(4.0),
         "odometry: 2 mm + 0.3 %, 0.05 deg + 0.05 deg/m": odometry(drift),
+        "odometry translation + 1 cm per rad turned": odometry(turning(0.01)),
+        "odometry translation + 2 cm per rad turned": odometry(turning(0.02)),
+        "odometry translation + 4 cm per rad turned": odometry(turning(0.04)),
     }
 
 
@@ -127,7 +141,9 @@ def main() -> None:
     )
     print(f"{'front end (odometry.tum)':48s} {score(odom)}")
     print(f"{'the run (trajectory.tum)':48s} {score(traj)}")
-    for name, rewrite in variants().items():
+    yaw = np.unwrap(np.arctan2(odom[:, 1, 0], odom[:, 0, 0]))
+    turned = np.r_[0.0, np.cumsum(np.abs(np.diff(yaw)))][kf_index]
+    for name, rewrite in variants(np.r_[0.0, np.diff(turned)]).items():
         graph = [prior, *(rewrite(f) for f in factors)]
         start = gtsam.Values()
         start.insert(0, gtsam.Pose2())

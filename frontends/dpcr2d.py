@@ -121,6 +121,7 @@ class Dpcr2d:
         self._lost = False  # the last registered frame was rejected
         # noise (m^2, rad^2) of the poorly fitting frames since the last keyframe
         self._poor_var = np.zeros(2)
+        self._turn = 0.0  # absolute turn (rad) since the last keyframe (turn_sigma_m_per_rad)
         self._wheel_gap: np.ndarray | None = None
         self._anchor: RegionAnchor | None = None  # this frame's re-anchor, if any
 
@@ -281,6 +282,17 @@ class Dpcr2d:
         var = 1.0 / np.diag(info)
         var[_PLANE] += self._poor_var[[0, 0, 1]]  # x, y, theta
         return np.diag(1.0 / var)
+
+    def _turn_var(self, step: np.ndarray) -> float:
+        """The translation variance (m^2) this frame's turn adds to its keyframe's
+        (``turn_sigma_m_per_rad``): the keyframe's grows to (c x the absolute turn since
+        it)^2, this frame's part the growth it makes."""
+        c = self.cfg.turn_sigma_m_per_rad
+        if c <= 0 or self.frame == 0:
+            return 0.0
+        before = self._turn
+        self._turn += abs(float(wrap(step[2])))
+        return c**2 * (self._turn**2 - before**2)
 
     def _spread(self, step: np.ndarray, poor: np.ndarray) -> float:
         """This frame's share of its keyframe's noise (m^2 + rad^2, ``Odometry.spread``): the
@@ -648,15 +660,17 @@ class Dpcr2d:
             tag = RegionTag(region, -1 if left is None else left)
         if self._anchor is not None:
             tag = replace(tag or RegionTag(), anchor=self._anchor)
-        poor = self._poor_fit_var(status, diag)
+        step = compose2d(inverse2d(previous), self.pose)
+        poor = self._poor_fit_var(status, diag) + [self._turn_var(step), 0.0]
         self._poor_var += poor
-        spread = self._spread(compose2d(inverse2d(previous), self.pose), poor)
+        spread = self._spread(step, poor)
         info = self._information(relative)
         if is_kf:
             self.pose_kf = reported
             self.kf_map.append(self.pose.copy())
             self._kf_path.append(self.path)
             self._poor_var = np.zeros(2)
+            self._turn = 0.0
         self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1

@@ -133,6 +133,15 @@ class Dpcr2dConfig:
     read at 1 deg: 26 reversing and turning frames with 20 - 35 % of the points on the
     submap slipped 1.1 m / 2 deg, and every loop edge that saw it was switched off
     against a chain claiming centimetres; docs/dpcr2d.md, "Where the scans do not fit").
+    turn_sigma_m_per_rad (m per rad, 0: off): the planar model gives a keyframe's
+    translation noise by the distance travelled only, so a stretch that turns in place
+    claims millimetres, but scans taken while turning are skewed by the turn and their
+    registrations' translation errors add up with it (one sense of rotation: the same
+    sign); each frame adds to its keyframe's translation variance (both axes) so that it
+    is (this x the absolute turn since the keyframe)^2, its own part of that as its
+    spread, and the graph puts a correction where the robot turned instead of on the
+    next poorly fitting frame (docs/dpcr2d.md, "Where the visit graph is worse than its
+    front end").
     On in ``dpcr2d`` (5 cm, 1 deg: the visit graph's edges claim their real noise); off
     for the region graph, whose edges claim PLICP's millimetres and bend a looser chain.
     poor_fit_wheel_bound: a registered frame's share is at most how far its registration
@@ -218,6 +227,7 @@ class Dpcr2dConfig:
     poor_fit_sigma_m: float = 0.0
     poor_fit_sigma_deg: float = 1.0
     poor_fit_wheel_bound: bool = True
+    turn_sigma_m_per_rad: float = 0.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )
