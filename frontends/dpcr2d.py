@@ -671,7 +671,7 @@ class Dpcr2d:
             self._kf_path.append(self.path)
             self._poor_var = np.zeros(2)
             self._turn = 0.0
-        self.motion = compose2d(inverse2d(previous), self.pose) if self.frame else np.zeros(3)
+        self.motion = step.copy() if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1
         timings["total_ms"] = (time.perf_counter() - t0) * 1e3

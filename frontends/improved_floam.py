@@ -511,8 +511,9 @@ class ImprovedFloam(ScanToMapFrontend):
             self._calibrate(fc, T)
         world = fc.points @ R.T + T[:3, 3]
         rows = self._confirmed(fc, world)
+        if fc.open_road:  # every scan of the mode, so the run's mean is the mode's share
+            est.counts["unconfirmed"] = 0 if rows is None else int(len(world) - len(rows))
         if rows is not None:
-            est.counts["unconfirmed"] = int(len(world) - len(rows))
             world, rotated = world[rows], rotated[rows]
         n_new = self._map.add(world, rotated, T[:3, 3])
         if not (from_map and n_new):
