@@ -142,6 +142,9 @@ class ImprovedFloamConfig(CommonConfig):
     sensor; ``mode`` auto switches it by the recent scans' ``along_road`` (1 below
     ``slam.features.scatter.ALONG_ROAD`` of ``horizontal_observability``), which every scan
     reports with ``open_road``.
+    young_map_scans / young_map_correspondence: while the map holds fewer scans, a tracked
+    registration pairs within the gate's bound off the prediction (at least that many m)
+    instead of ``registration.max_correspondence`` (``_correspondence``; 0 scans = off).
     """
 
     sor: SorConfig = field(default_factory=SorConfig)
@@ -165,11 +168,15 @@ class ImprovedFloamConfig(CommonConfig):
     coarse_points: int = 2000
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
+    young_map_scans: int = 10
+    young_map_correspondence: float = 0.5
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive(self, "frontend", ("edge_voxel", "plane_voxel", "covariance_voxel"))
         self.strategies()  # the choices are checked here, at load
+        if self.young_map_scans < 0 or self.young_map_correspondence <= 0:
+            raise ConfigError("young_map_scans must be >= 0 and young_map_correspondence > 0 m")
         if self.max_registration_points < 0 or self.coarse_points < 0:
             raise ConfigError("max_registration_points and coarse_points must be >= 0 (0 = no cap)")
         if self.max_scan_points < 0 or self.min_ring_columns < 0:
@@ -254,6 +261,7 @@ class ImprovedFloam(ScanToMapFrontend):
         self._open_road = OpenRoadGate(self.cfg.scatter)
         sc = self.cfg.scatter
         self._sighting = SecondSighting(sc.confirm_distance, sc.confirm_height)
+        self._inserted_scans = 0  # scans the map holds (a young map pairs ring samples)
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         # the map refresh of the previous scan runs on the other core meanwhile
@@ -467,7 +475,7 @@ class ImprovedFloam(ScanToMapFrontend):
     ) -> RegistrationResult:
         """GICP against the map (its voxel hash answers the neighbour queries) from
         ``T_pred``; ``wide``: a coarse pass with a wider search first; ``prior``: on the pose."""
-        rc = self.cfg.registration
+        rc = self._correspondence()
         tree = self._fresh if self._refresh is MapRefresh.ON_USE else self._map
         target = GicpTarget(self._map.points, self._map.covs, tree=tree)
         T0 = T_pred
@@ -481,6 +489,23 @@ class ImprovedFloam(ScanToMapFrontend):
                 src[::step], target, T_pred, coarse, source_covs=covs[::step]
             ).T_target_source
         return gicp_align(src, target, T0, rc, source_covs=covs, prior=prior)
+
+    def _correspondence(self) -> GicpConfig:
+        """The GICP settings, with the pairing distance cut to what the tracked prediction
+        may be off (the gate's bound over the frame, at least ``young_map_correspondence``
+        m) while the map holds fewer than ``young_map_scans`` scans: there its surfaces are
+        a few scans' ring samples metres apart, and a wide pairing distance pairs more of
+        them the nearer the scan slides back to where the rings coincide, at rest. Searches
+        (no tracked velocity) keep the whole distance."""
+        rc, cfg = self.cfg.registration, self.cfg
+        if self._inserted_scans >= cfg.young_map_scans or self.tracked_horizon is None:
+            return rc
+        pc, h = cfg.plausibility, self.tracked_horizon
+        bound = pc.prediction_floor + 0.5 * pc.max_acceleration * h**2
+        return replace(
+            rc,
+            max_correspondence=min(rc.max_correspondence, max(bound, cfg.young_map_correspondence)),
+        )
 
     @property
     def map(self) -> VoxelHashMap:
@@ -516,6 +541,7 @@ class ImprovedFloam(ScanToMapFrontend):
         if rows is not None:
             world, rotated = world[rows], rotated[rows]
         n_new = self._map.add(world, rotated, T[:3, 3])
+        self._inserted_scans += 1
         if not (from_map and n_new):
             return
         if len(self._map) < rc.k_covariance:  # too few points for eq. (1): the source's

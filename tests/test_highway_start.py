@@ -177,3 +177,27 @@ def test_the_open_road_mode_keeps_the_traffic_out_of_the_map():
     assert err.max() < 0.05 and rejected == 0, err
     pulled, _ = errors(["frontend.scatter.confirm_distance=0"])
     assert pulled.max() > 0.1, pulled
+
+
+def test_a_young_map_pairs_near_at_a_moving_start(scene):
+    """A VLP-16 bag that starts at 21 m/s (frame 150): the map of the first scans is their
+    ring samples metres apart, and GICP pairing within 1 m pairs more of them the nearer the
+    scan slides back towards rest (from the true pose of the third scan it slid 0.32 m
+    back; the gate rejected it and the lost-track search jumped: measured step errors up to
+    1.31 m). Pairing within 0.5 m while the map holds fewer than 10 scans
+    (``young_map_scans``): every step within 0.25 m of the truth (measured 0.18 m), none
+    rejected (docs/robustness.md, "A young map at speed")."""
+    scans, gt = _scans(scene, 150, 12, "vlp16")
+    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
+
+    def errors(overrides: list[str]) -> tuple[np.ndarray, int]:
+        outs, _ = run_frontend(scans, "improved_floam", overrides)
+        est = np.array([o.pose for o in outs])
+        step_e = np.linalg.inv(est[:-1]) @ est[1:]
+        err = np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1)
+        return err, sum(bool(o.diagnostics.rejected) for o in outs)
+
+    err, rejected = errors([])
+    assert err.max() < 0.25 and rejected == 0, err
+    jumped, _ = errors(["frontend.young_map_scans=0"])
+    assert jumped.max() > 0.5, jumped
