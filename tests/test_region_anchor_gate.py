@@ -88,7 +88,6 @@ def test_an_aliased_re_anchor_is_switched_off_only_under_the_kernel(robust):
         for k in range(6, 12)
     ]
     anchor_off = bool(res.off[-1])
-    print(robust, np.round(np.array(err) * 100, 1), res.off.nonzero())
     if robust:
         assert anchor_off and not res.off[:-1].any()
         assert max(err) < 0.01
