@@ -65,8 +65,8 @@ class RegionEdgeConfig(FactorConfig):
     ``wide_gate_deg``; anchor_sigma_m / anchor_sigma_deg: the noise of a front end's
     re-anchor (its keyframe's ``RegionTag.anchor``: its pose on the map of that earlier
     keyframe), an edge too; anchor_robust: a visit's re-anchor edge is under the robust
-    kernel and the visit graph's gate like its loop edges (False: Gaussian, never switched
-    off).
+    kernel and the visit graph's gate like its loop edges (the wide search can land on a
+    second minimum along a corridor; False: Gaussian, never switched off).
     visits: the loop search of the visit graph (``slam.visit_graph``), used for the
     keyframes a front end marks as visits (``dpcr2d`` with ``visit_scans``:
     ``RegionTag.visit``) instead of the region pairs."""
