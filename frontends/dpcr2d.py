@@ -122,6 +122,7 @@ class Dpcr2d:
         # noise (m^2, rad^2) of the poorly fitting frames since the last keyframe
         self._poor_var = np.zeros(2)
         self._turn = 0.0  # absolute turn (rad) since the last keyframe (turn_sigma_m_per_rad)
+        self._after_anchor = False  # a visit after an anchored re-anchor (anchor_after_sigma_m)
         self._wheel_gap: np.ndarray | None = None
         self._anchor: RegionAnchor | None = None  # this frame's re-anchor, if any
 
@@ -293,6 +294,15 @@ class Dpcr2d:
         before = self._turn
         self._turn += abs(float(wrap(step[2])))
         return c**2 * (self._turn**2 - before**2)
+
+    def _anchor_var(self) -> float:
+        """The translation variance (m^2) this frame adds to its keyframe's when the visit
+        follows a re-anchor made a loop edge (``anchor_after_sigma_m``): an even share,
+        sigma^2 / ``visit_scans``, of what the whole visit claims more."""
+        s = self.cfg.anchor_after_sigma_m
+        if s <= 0 or not self._after_anchor or self.cfg.visit_scans <= 0:
+            return 0.0
+        return s**2 / self.cfg.visit_scans
 
     def _spread(self, step: np.ndarray, poor: np.ndarray) -> float:
         """This frame's share of its keyframe's noise (m^2 + rad^2, ``Odometry.spread``): the
@@ -661,7 +671,7 @@ class Dpcr2d:
         if self._anchor is not None:
             tag = replace(tag or RegionTag(), anchor=self._anchor)
         step = compose2d(inverse2d(previous), self.pose)
-        poor = self._poor_fit_var(status, diag) + [self._turn_var(step), 0.0]
+        poor = self._poor_fit_var(status, diag) + [self._turn_var(step) + self._anchor_var(), 0.0]
         self._poor_var += poor
         spread = self._spread(step, poor)
         info = self._information(relative)
@@ -671,6 +681,7 @@ class Dpcr2d:
             self._kf_path.append(self.path)
             self._poor_var = np.zeros(2)
             self._turn = 0.0
+            self._after_anchor = self._anchor is not None
         self.motion = step.copy() if self.frame else np.zeros(3)
         self.motion[2] = float(wrap(self.motion[2]))
         self.frame += 1

@@ -133,6 +133,13 @@ class Dpcr2dConfig:
     read at 1 deg: 26 reversing and turning frames with 20 - 35 % of the points on the
     submap slipped 1.1 m / 2 deg, and every loop edge that saw it was switched off
     against a chain claiming centimetres; docs/dpcr2d.md, "Where the scans do not fit").
+    On in ``dpcr2d`` (5 cm, 1 deg: the visit graph's edges claim their real noise); off
+    for the region graph, whose edges claim PLICP's millimetres and bend a looser chain.
+    poor_fit_wheel_bound: a registered frame's share is at most how far its registration
+    and its wheel odometry disagree (translation, heading): where the two agree the frame
+    did not slip, and the loop edges should not put a correction there (Intel: the short
+    relations of the graph 1.25 -> 1.24 cm, its front end's); a kept prediction and a
+    re-anchor are not bounded.
     turn_sigma_m_per_rad (m per rad, 0: off): the planar model gives a keyframe's
     translation noise by the distance travelled only, so a stretch that turns in place
     claims millimetres, but scans taken while turning are skewed by the turn and their
@@ -142,13 +149,13 @@ class Dpcr2dConfig:
     spread, and the graph puts a correction where the robot turned instead of on the
     next poorly fitting frame (docs/dpcr2d.md, "Where the visit graph is worse than its
     front end").
-    On in ``dpcr2d`` (5 cm, 1 deg: the visit graph's edges claim their real noise); off
-    for the region graph, whose edges claim PLICP's millimetres and bend a looser chain.
-    poor_fit_wheel_bound: a registered frame's share is at most how far its registration
-    and its wheel odometry disagree (translation, heading): where the two agree the frame
-    did not slip, and the loop edges should not put a correction there (Intel: the short
-    relations of the graph 1.25 -> 1.24 cm, its front end's); a kept prediction and a
-    re-anchor are not bounded.
+    anchor_after_sigma_m (m, 0: off): the visit after a re-anchor made a loop edge
+    (``visit_anchor_edges``) claims this much more translation noise (both axes), spread
+    evenly over its frames (this^2 / ``visit_scans`` each): the front end has just moved its
+    submap onto an old map, and its motion over the next visit is measured on that move
+    (Intel: the visit after three re-anchors within 8 scans of a turn on the spot slid
+    0.2 - 0.3 m along a corridor against every loop edge there; docs/dpcr2d.md,
+    "Re-anchors under the gate").
 
     refine (``slam.mapping.scan_window2d.ScanWindowConfig``; ``refine.scans`` 0: off):
     after the first registration, PLICP of the scan on the raw points of the last
@@ -228,6 +235,7 @@ class Dpcr2dConfig:
     poor_fit_sigma_deg: float = 1.0
     poor_fit_wheel_bound: bool = True
     turn_sigma_m_per_rad: float = 0.0
+    anchor_after_sigma_m: float = 0.0
     start: CorrelativeConfig = field(
         default_factory=lambda: CorrelativeConfig(max_shift=0.5, max_angle_deg=20.0)
     )

@@ -64,7 +64,9 @@ class RegionEdgeConfig(FactorConfig):
     of the odometry is within ``wide_gate_m`` + gate_fraction * path and
     ``wide_gate_deg``; anchor_sigma_m / anchor_sigma_deg: the noise of a front end's
     re-anchor (its keyframe's ``RegionTag.anchor``: its pose on the map of that earlier
-    keyframe), an edge too.
+    keyframe), an edge too; anchor_robust: a visit's re-anchor edge is under the robust
+    kernel and the visit graph's gate like its loop edges (the wide search can land on a
+    second minimum along a corridor; False: Gaussian, never switched off).
     visits: the loop search of the visit graph (``slam.visit_graph``), used for the
     keyframes a front end marks as visits (``dpcr2d`` with ``visit_scans``:
     ``RegionTag.visit``) instead of the region pairs."""
@@ -88,6 +90,7 @@ class RegionEdgeConfig(FactorConfig):
     wide_gate_deg: float = 25.0
     anchor_sigma_m: float = 0.05
     anchor_sigma_deg: float = 1.0
+    anchor_robust: bool = False
     visits: VisitGraphConfig = field(default_factory=VisitGraphConfig)
 
     def __post_init__(self) -> None:
@@ -156,7 +159,7 @@ class RegionEdgePlugin:
             self._path.append(self._path[-1] + step)
         tag = kf.region or RegionTag()
         if tag.visit:  # a re-anchored visit also carries its front end's loop edge
-            return self._anchor(kf, robust=False) + self._visit(kf, graph)
+            return self._anchor(kf, robust=cfg.anchor_robust) + self._visit(kf, graph)
         anchors = self._anchor(kf)
         region = tag.left
         cloud = graph.cloud(kf.id)
