@@ -47,7 +47,7 @@ from slam.registration.ground_plane import (
     flatten_ground,
     on_ground,
 )
-from slam.registration.plausibility import PlausibilityConfig
+from slam.registration.plausibility import PlausibilityConfig, prediction_bound
 from slam.registration.pose_prior import MotionPriorConfig, PosePrior
 from slam.registration.se3 import transform
 from slam.sensor.beam_calibration import BeamCalibration, BeamCalibrationConfig
@@ -500,8 +500,7 @@ class ImprovedFloam(ScanToMapFrontend):
         rc, cfg = self.cfg.registration, self.cfg
         if self._inserted_scans >= cfg.young_map_scans or self.tracked_horizon is None:
             return rc
-        pc, h = cfg.plausibility, self.tracked_horizon
-        bound = pc.prediction_floor + 0.5 * pc.max_acceleration * h**2
+        bound = prediction_bound(cfg.plausibility, self.tracked_horizon)
         return replace(
             rc,
             max_correspondence=min(rc.max_correspondence, max(bound, cfg.young_map_correspondence)),

@@ -207,6 +207,12 @@ def quality_problem(
     return None
 
 
+def prediction_bound(cfg: PlausibilityConfig, elapsed: float) -> float:
+    """How far (m) a pose may leave the constant-velocity prediction over ``elapsed`` s:
+    the floor plus what the bounded acceleration allows, a T^2 / 2."""
+    return cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
+
+
 def _motion_problem(
     T_trusted_current: np.ndarray,
     T_pred_current: np.ndarray,
@@ -222,7 +228,7 @@ def _motion_problem(
     if r > cfg.max_turn_rate_deg * elapsed:
         return f"turn rate {r / elapsed:.0f} deg/s > {cfg.max_turn_rate_deg:g} deg/s"
     t, r = motion_magnitude(T_pred_current)
-    lim_t = cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
+    lim_t = prediction_bound(cfg, elapsed)
     lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
     if t > lim_t:
         return f"{t:.2f} m from the constant-velocity prediction (> {lim_t:.2f} m)"
