@@ -310,8 +310,10 @@ class ImprovedFloam(ScanToMapFrontend):
         est.pending = self._open_road_cloud(*build, open_road)
         seen = self._observability(est.pending, plane)
         gate.update(seen < ALONG_ROAD)
-        if first and gate.on != open_road:  # the first scan of a run is judged by itself
-            open_road = gate.on
+        starting = self._starting()
+        if (first and gate.on != open_road) or (starting and not open_road):
+            # the first scan of a run is judged by itself; a start by what shows the motion
+            open_road = gate.on or starting
             est.pending = self._open_road_cloud(*build, open_road)
         counts.update(
             horizontal_observability=seen,
@@ -322,6 +324,12 @@ class ImprovedFloam(ScanToMapFrontend):
         )
         timings["covariance_ms"] = (time.perf_counter() - t) * 1e3
         return est
+
+    def _starting(self) -> bool:
+        """Whether this scan is built in the open-road mode because the motion is not known
+        yet (``scatter.at_start``: the first scan and the first-motion search)."""
+        sc = self.cfg.scatter
+        return sc.at_start and sc.mode == "auto" and self.gate.n_trusted < 2
 
     def _observability(self, fc: FeatureCloud, plane: tuple[np.ndarray, float] | None) -> float:
         """``horizontal_observability`` of the registered features (not the scatter points)

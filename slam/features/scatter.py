@@ -45,7 +45,10 @@ class ScatterConfig:
     did (on a city drive the mode costs accuracy, docs/robustness.md).
     confirm_distance, confirm_height (m): in the mode a point enters the map only when the
     previous inserted scan had one within that distance horizontally and height vertically
-    (``slam.mapping.second_sighting``: the traffic stays out of the map; 0 = off)."""
+    (``slam.mapping.second_sighting``: the traffic stays out of the map; 0 = off).
+    at_start: in ``auto``, the scans before the motion is known (the first scan and the
+    first-motion search) are built in the mode whatever the gate says, so that a start is
+    judged by the structure that shows the motion, not by ring samples that fit at rest."""
 
     mode: str = "auto"
     voxel: float = 0.5
@@ -56,6 +59,7 @@ class ScatterConfig:
     off_share: float = 0.2
     confirm_distance: float = 0.5
     confirm_height: float = 1.0
+    at_start: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:

@@ -142,12 +142,28 @@ class StartSearch:
         first of ``starts``) as usual and from the speed hypotheses; another start's is
         kept only where it ``start_beats`` the prediction's. Returns it, its start and the
         number of starts."""
-        base, _, better, _, after = self._race(work, T_pred, starts[1:], timings, wide)
+        base, tried, better, state, after = self._race(work, T_pred, starts[1:], timings, wide)
         if base is not None and base.result is None:  # nothing to register against
             return base, T_pred, 0
         self._restore(after)
         if better:
             return (*most_explained(better), len(starts))
+        if len(starts) > 1 and not _converged(base):
+            # no start converged: a flat cost creeps for all its iterations (a 16-beam
+            # scan against one scan at 25 m/s); the most explained end is refined once more
+            ends = [(e, T0) for e, T0 in tried if e.result is not None]
+            if base is not None:
+                ends.append((base, T_pred))
+            if ends:
+                end, T0 = most_explained(ends)
+                self._restore(state)
+                try:
+                    again = self._register(work, end.pose, timings, False)
+                except RegistrationError:
+                    again = None
+                if _converged(again):
+                    return again, T0, len(starts)
+                self._restore(after)
         if base is None:
             raise RegistrationError("no registration converged from any start hypothesis")
         return base, T_pred, len(starts)
@@ -191,6 +207,11 @@ class StartSearch:
             self._restore(state)
             best = self._register(work, best.pose, timings, False)
         return best, shown
+
+
+def _converged(est: Estimate | None) -> bool:
+    """Whether ``est`` has a converged registration."""
+    return est is not None and est.result is not None and est.result.converged
 
 
 def _near(a: Estimate, b: Estimate, c: CommonConfig) -> bool:
