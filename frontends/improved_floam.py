@@ -169,7 +169,7 @@ class ImprovedFloamConfig(CommonConfig):
     max_scan_points: int = 140000
     min_ring_columns: int = 1024
     young_map_scans: int = 10
-    young_map_correspondence: float = 0.5
+    young_map_correspondence: float = 0.3
 
     def __post_init__(self) -> None:
         super().__post_init__()
