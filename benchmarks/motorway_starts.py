@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from slam.bench.peers import run_frontend, small_gicp_odometry
+from slam.bench.robustness import step_errors
 from slam.sim.highway import highway
 from slam.sim.sensors import get_sensor
 from slam.sim.simulate import STAMP0, effective_model, frame_stamps, published_scan
@@ -67,13 +68,6 @@ def start_scans(case: str, frames: int) -> tuple[list[Scan], np.ndarray]:
         scans.append(scan)
         poses.append(scene.pose_at(np.array([float(stamp) - STAMP0]))[0])
     return scans, np.asarray(poses)
-
-
-def step_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """(N-1,) m: translation of each per-frame relative pose against the truth's."""
-    step_e = np.linalg.inv(est[:-1]) @ est[1:]
-    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
-    return np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1)
 
 
 def main() -> None:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from slam.bench.peers import run_frontend
+from slam.bench.robustness import step_errors
 from slam.cli.run import along_road_warning
 from slam.sensor import estimate_beams
 from slam.sim.highway import highway
@@ -44,6 +45,16 @@ def _scans(
     return scans, np.asarray(poses)
 
 
+def _start_errors(
+    scans, gt, overrides: list[str], config: str = "improved_floam"
+) -> tuple[np.ndarray, int]:
+    """Per-frame step errors (m) of ``config`` over ``scans`` against the true poses ``gt``,
+    and its frames rejected."""
+    outs, _ = run_frontend(scans, config, overrides)
+    err = step_errors(np.array([o.pose for o in outs]), gt)
+    return err, sum(bool(o.diagnostics.rejected) for o in outs)
+
+
 @pytest.mark.parametrize("first", [130, 250])  # 18 and 25 m/s
 def test_64_beams_from_the_layout_at_speed(scene, first):
     scans, _ = _scans(scene, first, 3)
@@ -56,13 +67,8 @@ def _step_errors(scene, config: str, overrides: list[str]) -> tuple[np.ndarray, 
     """Per-frame translation errors (m) of ``config``'s front end from frame 70 (9.1 m/s) over
     five steps, and how many frames it rejected."""
     scans, gt = _scans(scene, 70, 6)
-    outs, _ = run_frontend(scans, config, overrides)
-    est = np.array([o.pose for o in outs])
-    step_e = np.linalg.inv(est[:-1]) @ est[1:]
-    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
-    assert np.all(np.linalg.norm(step_g[:, :3, 3], axis=1) > 0.85)
-    rejected = sum(bool(o.diagnostics.rejected) for o in outs)
-    return np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1), rejected
+    assert np.all(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1) > 0.85)
+    return _start_errors(scans, gt, overrides, config)
 
 
 @pytest.mark.parametrize(
@@ -94,18 +100,9 @@ def test_lego_loam_keeps_the_motion_while_traffic_passes(scene):
     cached bag). With its edge and plane residuals beyond 3 robust sigmas weighing 0 every
     step stays within 8 cm (measured 5.7 cm)."""
     scans, gt = _scans(scene, 70, 15)
-    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
-
-    def errors(overrides: list[str]) -> tuple[np.ndarray, int]:
-        outs, _ = run_frontend(scans, "lego_loam", overrides)
-        est = np.array([o.pose for o in outs])
-        step_e = np.linalg.inv(est[:-1]) @ est[1:]
-        err = np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1)
-        return err, sum(bool(o.diagnostics.rejected) for o in outs)
-
-    err, rejected = errors([])
+    err, rejected = _start_errors(scans, gt, [], "lego_loam")
     assert err.max() < 0.08 and rejected == 0, err
-    pulled, _ = errors(["frontend.registration.outlier_sigmas=0"])
+    pulled, _ = _start_errors(scans, gt, ["frontend.registration.outlier_sigmas=0"], "lego_loam")
     assert pulled.max() > 0.15, pulled
 
 
@@ -194,29 +191,10 @@ def test_a_young_map_pairs_near_at_a_moving_start(scene):
     scans (``young_map_scans``): every step within 0.25 m of the truth (measured 0.18 m), none
     rejected (docs/robustness.md, "A young map at speed")."""
     scans, gt = _scans(scene, 150, 12, "vlp16")
-    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
-
-    def errors(overrides: list[str]) -> tuple[np.ndarray, int]:
-        outs, _ = run_frontend(scans, "improved_floam", overrides)
-        est = np.array([o.pose for o in outs])
-        step_e = np.linalg.inv(est[:-1]) @ est[1:]
-        err = np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1)
-        return err, sum(bool(o.diagnostics.rejected) for o in outs)
-
-    err, rejected = errors([])
+    err, rejected = _start_errors(scans, gt, [])
     assert err.max() < 0.25 and rejected == 0, err
-    jumped, _ = errors(["frontend.young_map_scans=0"])
+    jumped, _ = _start_errors(scans, gt, ["frontend.young_map_scans=0"])
     assert jumped.max() > 0.5, jumped
-
-
-def _start_errors(scans, gt, overrides: list[str]) -> tuple[np.ndarray, int]:
-    """Per-frame step errors (m) of improved_floam over ``scans`` and its frames rejected."""
-    outs, _ = run_frontend(scans, "improved_floam", overrides)
-    est = np.array([o.pose for o in outs])
-    step_e = np.linalg.inv(est[:-1]) @ est[1:]
-    step_g = np.linalg.inv(gt[:-1]) @ gt[1:]
-    err = np.linalg.norm(step_e[:, :3, 3] - step_g[:, :3, 3], axis=1)
-    return err, sum(bool(o.diagnostics.rejected) for o in outs)
 
 
 def test_a_start_at_speed_is_judged_by_what_shows_the_motion():
