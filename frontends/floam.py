@@ -11,26 +11,31 @@ import numpy as np
 
 from slam.errors import ConfigError
 from slam.features.loam import FeatureConfig, extract_features
+from slam.features.scatter import ScatterConfig
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.odometry.config import check_positive
+from slam.odometry.open_road import OpenRoad, OpenRoadScan
 from slam.registration.feature_icp import FeatureIcpConfig, MapTreeCache, feature_icp_align
 from slam.registration.ground_plane import (
     FixedNormals,
     GroundPlaneConfig,
+    enough_beams,
+    fit_ground,
     on_ground,
-    scan_ground,
 )
 from slam.types import Scan
 
 
 @dataclass
 class EdgesAndPlanes:
-    """Sensor-frame edge and plane features (m) of one scan: what the maps receive."""
+    """Sensor-frame edge and plane features (m) of one scan: what the maps receive; in the
+    open-road mode (``road``) also its scatter points."""
 
     edges: np.ndarray
     planes: np.ndarray
+    road: OpenRoadScan | None = None
 
 
 def _edge_map() -> LocalMapConfig:
@@ -61,7 +66,10 @@ class FloamConfig(CommonConfig):
     edges) and plane features on it match along its normal only, so that the map's rings
     cannot hold the scan at rest (docs/paper000.md, "The ground's rings"). ground_edge_band
     (m): edges this close to the plane are dropped; kerbs stand higher and stay (0.2 m
-    dropped them: nuScenes keyframes 39.9 -> 44.4 cm APE, 4 rejected; 0.1 m: 37.9 cm)."""
+    dropped them: nuScenes keyframes 39.9 -> 44.4 cm APE, 4 rejected; 0.1 m: 37.9 cm).
+    scatter: the open-road mode (``slam.odometry.open_road``): on a road whose features all
+    run along it, the points the features left out are registered too (point-to-surface,
+    their own map) and the ground is a plane on every sensor."""
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
     registration: FeatureIcpConfig = field(default_factory=FeatureIcpConfig)
@@ -72,6 +80,7 @@ class FloamConfig(CommonConfig):
     max_registration_points: int = 0
     ground: GroundPlaneConfig = field(default_factory=_ground)
     ground_edge_band: float = 0.1
+    scatter: ScatterConfig = field(default_factory=ScatterConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -93,6 +102,7 @@ class Floam(ScanToMapFrontend):
         self.edge_map = VoxelHashMap(self.cfg.edge_map)
         self.plane_map = VoxelHashMap(self.cfg.plane_map)
         self._edge_tree, self._plane_tree = MapTreeCache(), MapTreeCache()
+        self.open_road = OpenRoad(self.cfg.scatter)
 
     def _registered(self, edges: np.ndarray, planes: np.ndarray):
         """The edges and planes the ICP registers: all of them, or above
@@ -109,26 +119,47 @@ class Floam(ScanToMapFrontend):
         xyz = scan.xyz
         t = time.perf_counter()
         feats = extract_features(xyz, scan.ring, cfg.features, top_picks=False)
-        edges = xyz[feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]]
-        planes = xyz[feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]]
-        plane = scan_ground(xyz, scan.ring, cfg.ground)
+        e_idx = feats.edge_idx[voxel_thin(xyz, cfg.edge_voxel, feats.edge_idx)]
+        p_idx = feats.plane_idx[voxel_thin(xyz, cfg.plane_voxel, feats.plane_idx)]
+        ground_fit = fit_ground(xyz, cfg.ground) if cfg.ground.enabled else None
+        candidates = np.zeros(len(xyz), dtype=bool)
+        candidates[feats.edge_idx] = True
+        candidates[feats.plane_idx] = True
+        road = self.open_road.judge(
+            xyz,
+            scan.ring,
+            candidates,
+            ground_fit,
+            cfg.ground.band,
+            self.gate.n_trusted < 2,
+        )
+        # the ground as a plane on sensors of enough beams, and on any in the open-road mode
+        plane = ground_fit if road.on or enough_beams(scan.ring, cfg.ground) else None
+        edges, planes = xyz[e_idx], xyz[p_idx]
         if plane is not None:
             edges = edges[~on_ground(edges, plane, cfg.ground_edge_band)]
+        road.plane = plane
         counts = {"n_after_sor": int(len(xyz)), "n_edges": int(len(edges))}
         counts["n_planes"] = int(len(planes))
+        counts.update(
+            horizontal_observability=road.observability,
+            open_road=int(road.on),
+            scatter_points=int(len(road.scatter)),
+        )
         timings["features_ms"] = (time.perf_counter() - t) * 1e3
         if len(edges) + len(planes) < 10:
             skipped = f"too few features ({len(edges) + len(planes)})"
             return Estimate(T_pred, skipped=skipped, counts=counts)
 
         t = time.perf_counter()
-        est = Estimate(T_pred, pending=EdgesAndPlanes(edges, planes), counts=counts)
+        est = Estimate(T_pred, pending=EdgesAndPlanes(edges, planes, road), counts=counts)
         if len(self.edge_map) + len(self.plane_map) >= 10:
             # KD-trees (rebuilt when a map changed): FLOAM's bounded k=5 search reaches 1 m,
             # five 0.2 m voxels, where most outdoor edge points have no neighbours, and the
             # voxel hash would open up to 11^3 voxels for each of them
             e_map = self._edge_tree.target(self.edge_map)
             p_map = self._plane_tree.target(self.plane_map)
+            s_map = self.open_road.target() if road.on else None
             e_reg, p_reg = self._registered(edges, planes)
             rc = cfg.registration
             ground = None
@@ -143,17 +174,34 @@ class Floam(ScanToMapFrontend):
                     plane_threshold=rc.plane_threshold * f,
                 )
                 T0 = feature_icp_align(
-                    e_reg, p_reg, e_map, p_map, T_pred, coarse, ground
+                    e_reg, p_reg, e_map, p_map, T_pred, coarse, ground, road.scatter, s_map
                 ).T_target_source
-            est.result = feature_icp_align(e_reg, p_reg, e_map, p_map, T0, rc, ground)
+            est.result = feature_icp_align(
+                e_reg, p_reg, e_map, p_map, T0, rc, ground, road.scatter, s_map
+            )
             est.pose = est.result.T_target_source
+            est.evidence = self.open_road.evidence(road, est.pose, rc.max_neighbor_distance)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
+
+    def _scan_state(self) -> object:
+        return self.open_road.state()
+
+    def _restore_scan_state(self, state: object) -> None:
+        self.open_road.restore(state)
 
     def _map_size(self) -> int:
         return len(self.edge_map) + len(self.plane_map)
 
     def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
         f, T = est.pending, est.pose
-        self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
-        self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+        sensor = np.concatenate([f.edges, f.planes, f.road.scatter])
+        world = sensor @ T[:3, :3].T + T[:3, 3]
+        keep = self.open_road.kept(f.road, world, sensor, self.cfg.ground.band)
+        cuts = np.cumsum([len(f.edges), len(f.planes)])
+        edges, planes, scatter = np.split(world, cuts)
+        k_e, k_p, k_s = np.split(keep, cuts)
+        self.edge_map.add(edges[k_e], origin=T[:3, 3])
+        self.plane_map.add(planes[k_p], origin=T[:3, 3])
+        if len(scatter):
+            self.open_road.map.add(scatter[k_s], origin=T[:3, 3])

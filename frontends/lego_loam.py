@@ -22,16 +22,19 @@ import numpy as np
 from slam.errors import ConfigError
 from slam.features.loam import FeatureConfig, extract_features, ring_from_elevation
 from slam.features.range_image_segmentation import Segmentation, SegmentationConfig, segment
+from slam.features.scatter import ScatterConfig
 from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.odometry.config import check_positive
+from slam.odometry.open_road import OpenRoad, OpenRoadScan
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
 from slam.registration.ground_plane import (
     FixedNormals,
     GroundPlaneConfig,
+    enough_beams,
+    fit_ground,
     on_ground,
-    scan_ground,
 )
 from slam.registration.two_step import TwoStepConfig, two_step_align, weak_translation
 from slam.types import Scan
@@ -53,13 +56,16 @@ class LegoFeatureConfig:
 class LegoFeatures:
     """Sensor-frame feature sets of one sweep: ground (plane points on the ground), edges
     (non-ground), planes (non-ground), each voxel-thinned; ``segmented``: (N,) bool mask of
-    the points kept by the segmentation; ``seg``: the segmentation itself."""
+    the points kept by the segmentation; ``seg``: the segmentation itself; ``candidates``:
+    (N,) bool mask of every edge or plane candidate before thinning (the rest is scatter:
+    ``slam.odometry.open_road``)."""
 
     ground: np.ndarray
     edges: np.ndarray
     planes: np.ndarray
     segmented: np.ndarray
     seg: Segmentation
+    candidates: np.ndarray
 
 
 def lego_features(
@@ -79,6 +85,9 @@ def lego_features(
     f = extract_features(xyz[keep], np.asarray(ring)[keep], cfg.features)
     e = keep[f.edge_idx]
     p = keep[f.plane_idx]
+    candidates = np.zeros(len(xyz), dtype=bool)
+    candidates[e] = True
+    candidates[p] = True
     e = e[~seg.ground[e]]
     g, pl = p[seg.ground[p]], p[~seg.ground[p]]
 
@@ -92,16 +101,19 @@ def lego_features(
         planes=thin(pl, cfg.plane_voxel),
         segmented=seg.segmented,
         seg=seg,
+        candidates=candidates,
     )
 
 
 @dataclass
 class EdgesAndPlanes:
     """Sensor-frame features (m) the maps receive: edges, and the ground and non-ground
-    plane points together (LeGO's surface map)."""
+    plane points together (LeGO's surface map); in the open-road mode (``road``) also the
+    scan's scatter points."""
 
     edges: np.ndarray
     planes: np.ndarray
+    road: OpenRoadScan | None = None
 
 
 def _edge_map() -> LocalMapConfig:
@@ -134,7 +146,11 @@ class LegoLoamConfig(CommonConfig):
     sensors of ``ground_plane.min_beams`` or more): ground points on it match along its
     normal, so that the map's ground rings cannot hold the scan at rest (simulated motorway
     started at 9 m/s: first steps 0.16 / -0.09 / -0.29 m for 0.91 m without it;
-    docs/paper001.md, "The ground's rings")."""
+    docs/paper001.md, "The ground's rings").
+    scatter: the open-road mode (``slam.odometry.open_road``): on a road whose features all
+    run along it, the points the segmentation dropped (vegetation, clutter) are matched too
+    (point-to-point, their own map; in the second step and the refinement) and the ground
+    is a plane on every sensor."""
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -146,6 +162,7 @@ class LegoLoamConfig(CommonConfig):
     plane_map: LocalMapConfig = field(default_factory=_plane_map)
     max_surface_points: int = 0
     ground_plane: GroundPlaneConfig = field(default_factory=_ground_plane)
+    scatter: ScatterConfig = field(default_factory=ScatterConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -170,6 +187,7 @@ class LegoLoam(ScanToMapFrontend):
         self.edge_map = self._new_map(self.cfg.edge_map)
         self.plane_map = self._new_map(self.cfg.plane_map)
         self._edge_tree, self._plane_tree = MapTreeCache(), MapTreeCache()
+        self.open_road = OpenRoad(self.cfg.scatter)
 
     # ------------------------------------------------------------------ hooks for LPB
     def _new_map(self, cfg: LocalMapConfig):
@@ -225,21 +243,39 @@ class LegoLoam(ScanToMapFrontend):
             est.skipped = f"too few features ({len(f.edges) + len(f.planes)})"
             return est
         t = time.perf_counter()
-        est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]))
+        rings = self._ring(scan)
+        gc = self.cfg.ground_plane
+        ground_fit = fit_ground(scan.xyz, gc) if gc.enabled else None
+        road = self.open_road.judge(
+            scan.xyz,
+            rings,
+            f.candidates,
+            ground_fit,
+            gc.band,
+            self.gate.n_trusted < 2,
+        )
+        # the ground as a plane on sensors of enough beams, and on any in the open-road mode
+        road.plane = ground_fit if road.on or enough_beams(rings, gc) else None
+        counts.update(
+            horizontal_observability=road.observability,
+            open_road=int(road.on),
+            scatter_points=int(len(road.scatter)),
+        )
+        est.pending = EdgesAndPlanes(f.edges, np.concatenate([f.ground, f.planes]), road)
         if len(self.edge_map) + len(self.plane_map) >= 10:
             reg = self._registered(f)
-            rings = self._ring(scan)
-            plane = scan_ground(scan.xyz, rings, self.cfg.ground_plane)
             fixed = None
-            if plane is not None:
-                rows = on_ground(reg.ground, plane, self.cfg.ground_plane.band)
-                fixed = FixedNormals(rows, plane[0])
+            if road.plane is not None:
+                fixed = FixedNormals(on_ground(reg.ground, road.plane, gc.band), road.plane[0])
             beams = int(rings.max()) + 1 if len(rings) else 0
-            est.result = self._align(reg, T_pred, wide, self._iterations(scan), fixed, beams)
+            est.result = self._align(
+                reg, T_pred, wide, self._iterations(scan), fixed, beams, road.scatter
+            )
             est.pose = est.result.T_target_source
             rc = self.cfg.registration
             if rc.degenerate_ratio > 0:  # translation axes kept from the prediction
                 counts["remapped_axes"] = len(weak_translation(est.result.H, rc.degenerate_ratio))
+            est.evidence = self.open_road.evidence(road, est.pose, rc.max_neighbor_distance)
         timings["registration_ms"] = (time.perf_counter() - t) * 1e3
         return est
 
@@ -269,15 +305,23 @@ class LegoLoam(ScanToMapFrontend):
         iterations: int,
         fixed: FixedNormals | None = None,
         beams: int = 0,
+        scatter: np.ndarray | None = None,
     ):
         """Two-step LM and 6-DoF refinement against the maps from ``T_pred`` (a coarse pass
         with a wider search first when ``wide``), at most ``iterations`` LM iterations;
         ``fixed``: the ground points on the scan's ground plane and its normal; ``beams``:
-        the sensor's (the cut of what moved needs ``outlier_min_beams``)."""
+        the sensor's (the cut of what moved needs ``outlier_min_beams``, or the open-road
+        mode); ``scatter``: the mode's points (sensor frame), matched against their map."""
         cfg = self.cfg
         e_map, p_map = self._targets()
+        open_road = scatter is not None and len(scatter) > 0
+        s_map = self.open_road.target() if open_road else None
+        more = {"scatter_xyz": scatter, "scatter_map": s_map}
         rc = replace(cfg.registration, max_iterations=iterations)
-        if beams < rc.outlier_min_beams:
+        # on fewer beams the cut took the few terms that hold a corridor along it; on an open
+        # road the scatter points hold the pose along it, and the traffic's edges and planes
+        # pulled a 16-beam motorway start backwards (0.63 m in one step)
+        if beams < rc.outlier_min_beams and not open_road:
             rc = replace(rc, outlier_sigmas=0.0)
         plane = self._ground_plane_odom()
         g_res = self._ground_residual_points()
@@ -291,19 +335,37 @@ class LegoLoam(ScanToMapFrontend):
             )
             T0 = two_step_align(
                 f.ground, f.edges, f.planes, e_map, p_map, T_pred, coarse, plane,
-                ground_residual_xyz=g_res, ground_normal=fixed, settle=True,
+                ground_residual_xyz=g_res, ground_normal=fixed, settle=True, **more,
             ).T_target_source  # fmt: skip
         # a start that is not the tracked prediction (first motion, lost) settles first
         return two_step_align(
             f.ground, f.edges, f.planes, e_map, p_map, T0, rc, plane,
             ground_residual_xyz=g_res, ground_normal=fixed,
-            settle=self.tracked_horizon is None,
+            settle=self.tracked_horizon is None, **more,
         )  # fmt: skip
 
     def _map_size(self) -> int:
         return len(self.edge_map) + len(self.plane_map)
 
+    def _scan_state(self) -> object:
+        return self.open_road.state()
+
+    def _restore_scan_state(self, state: object) -> None:
+        self.open_road.restore(state)
+
     def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
         f, T = est.pending, est.pose
-        self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
-        self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], origin=T[:3, 3])
+        sensor = np.concatenate([f.edges, f.planes, f.road.scatter])
+        world = sensor @ T[:3, :3].T + T[:3, 3]
+        keep = self.open_road.kept(f.road, world, sensor, self.cfg.ground_plane.band)
+        cuts = np.cumsum([len(f.edges), len(f.planes)])
+        edges, planes, scatter = np.split(world, cuts)
+        k_e, k_p, k_s = np.split(keep, cuts)
+        self._add_features(edges[k_e], planes[k_p], T[:3, 3])
+        if len(scatter):
+            self.open_road.map.add(scatter[k_s], origin=T[:3, 3])
+
+    def _add_features(self, edges: np.ndarray, planes: np.ndarray, origin: np.ndarray) -> None:
+        """Edges and plane points (odometry frame) into their maps; ``origin``: the sensor."""
+        self.edge_map.add(edges, origin=origin)
+        self.plane_map.add(planes, origin=origin)

@@ -263,10 +263,11 @@ class LegoLpb(LegoLoam):
         return None if p is None else np.r_[p.normal, p.d]
 
     def _scan_state(self):
-        return self._dyn_state  # the dynamics tracker advances once per scan
+        return super()._scan_state(), self._dyn_state  # the tracker advances once per scan
 
     def _restore_scan_state(self, state) -> None:
-        self._dyn_state = state
+        road, self._dyn_state = state
+        super()._restore_scan_state(road)
 
     def _ground_plane_odom(self) -> tuple[np.ndarray, float] | None:
         return self._plane_odom if self._plane_now is not None else None
@@ -274,12 +275,15 @@ class LegoLpb(LegoLoam):
     def _ground_residual_points(self) -> np.ndarray | None:
         return self._residual_xyz
 
-    def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
-        f, T = est.pending, est.pose
+    def _add_features(self, edges: np.ndarray, planes: np.ndarray, origin: np.ndarray) -> None:
         if self.cfg.map.enabled:
-            self.edge_map.add(f.edges @ T[:3, :3].T + T[:3, 3], T[:3, 3])
-            self.plane_map.add(f.planes @ T[:3, :3].T + T[:3, 3], T[:3, 3])
+            self.edge_map.add(edges, origin)
+            self.plane_map.add(planes, origin)
         else:
-            super()._insert(est, timings)
+            super()._add_features(edges, planes, origin)
+
+    def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
+        super()._insert(est, timings)
+        T = est.pose
         if self._plane_now is not None:  # the plane of this trusted frame, for the next one
             self._plane_odom = plane_to_odom(self._plane_now.normal, self._plane_now.d, T)

@@ -75,7 +75,7 @@ def _step_errors(scene, config: str, overrides: list[str]) -> tuple[np.ndarray, 
     "config, bound, off",
     [
         ("improved_floam", 0.08, "frontend.ground.enabled=false frontend.scatter.at_start=false"),
-        ("floam", 0.08, "frontend.ground.enabled=false"),
+        ("floam", 0.08, "frontend.ground.enabled=false frontend.scatter.at_start=false"),
         ("lego_loam", 0.15, "frontend.ground_plane.enabled=false"),
         ("lego_lpb", 0.15, None),
     ],
@@ -84,8 +84,8 @@ def test_every_front_end_starts_right_at_9_m_per_s(scene, config, bound, off):
     """From frame 70 (9.1 m/s) each step within ``bound`` m of the truth (small_gicp: 8.9 cm
     per frame on average there; LeGO's edges are few on a motorway), no frame rejected;
     without the ground as a plane the map's ground rings hold the first steps at 0.1-0.5 m
-    for 0.9 m (improved_floam: unless its start is built in the open-road mode, whose
-    scatter points carry it; docs/robustness.md, motorway starts)."""
+    for 0.9 m (improved_floam and floam: unless their start is built in the open-road mode,
+    whose scatter points carry it; docs/robustness.md, motorway starts)."""
     err, rejected = _step_errors(scene, config, [])
     assert err.max() < bound, err
     assert rejected == 0
@@ -106,18 +106,25 @@ def test_lego_loam_keeps_the_motion_while_traffic_passes(scene):
     assert pulled.max() > 0.15, pulled
 
 
-def test_sixteen_beams_keep_huber_alone(scene):
-    """The cut of what moved needs 24 beams or more (``outlier_min_beams``): a VLP-16's poses
-    are those of Huber alone, to the bit (the 16-beam building's corridors lost the terms
-    that hold the pose along them: docs/paper001.md)."""
+def test_sixteen_beams_keep_huber_alone_off_the_open_road(scene):
+    """Outside the open-road mode the cut of what moved needs 24 beams or more
+    (``outlier_min_beams``): a VLP-16's poses are those of Huber alone, to the bit (the
+    16-beam building's corridors lost the terms that hold the pose along them:
+    docs/paper001.md). In the mode (here from the start) the scatter points hold the pose
+    along the road and the cut acts on any sensor."""
     scans, _ = _scans(scene, 70, 4, "vlp16")
-    runs = [run_frontend(scans, "lego_loam", over)[0] for over in ([], [
-        "frontend.registration.outlier_sigmas=0"
+    never = "frontend.scatter.mode=never"
+    runs = [run_frontend(scans, "lego_loam", over)[0] for over in ([never], [
+        never, "frontend.registration.outlier_sigmas=0"
     ])]  # fmt: skip
     assert all(np.array_equal(a.pose, b.pose) for a, b in zip(*runs, strict=True))
     assert not np.allclose(runs[0][-1].pose, np.eye(4))
-    cut, _ = run_frontend(scans, "lego_loam", ["frontend.registration.outlier_min_beams=0"])
+    cut, _ = run_frontend(scans, "lego_loam", [never, "frontend.registration.outlier_min_beams=0"])
     assert not np.array_equal(cut[-1].pose, runs[0][-1].pose)  # the cut does act on them
+    mode, _ = run_frontend(scans, "lego_loam", [])
+    huber, _ = run_frontend(scans, "lego_loam", ["frontend.registration.outlier_sigmas=0"])
+    assert mode[0].diagnostics.flat()["open_road"] == 1
+    assert not np.array_equal(mode[-1].pose, huber[-1].pose)
 
 
 def _along_road_share(outs) -> float:

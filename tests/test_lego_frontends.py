@@ -194,6 +194,7 @@ def test_surface_cap_thins_ground_and_planes_of_dense_scans_only():
         planes=rng.uniform(-20, 20, (4000, 3)),
         segmented=np.zeros(0, dtype=bool),
         seg=None,
+        candidates=np.zeros(0, dtype=bool),
     )
     assert LegoLpbConfig().max_surface_points == 8000
     assert LegoLpb(LegoLpbConfig(max_surface_points=9000))._registered(f) is f

@@ -33,7 +33,12 @@ class FeatureIcpConfig:
     """k_neighbors: map points per correspondence (LOAM: 5). max_neighbor_distance: all of
     them must lie within this distance (m). edge_ratio: line test on eigenvalues.
     plane_threshold: max point-to-plane distance of the neighbours (m). huber_delta: robust
-    kernel width (m), 0 disables it."""
+    kernel width (m), 0 disables it. scatter_cycle_tolerance (m, rad): with scatter points
+    (the open-road mode) a pose that comes back within this of one 2-4 iterations before,
+    having gone 2.5x as far in between, has converged (``solver.solve_weighted``): their
+    nearest-point pairs change from one iteration to the next and the pose cycles within
+    millimetres instead of meeting the 1e-6 epsilons (a 21 m/s motorway start: its second
+    frame, 2 cm from the truth, was rejected as unconverged); 0 = off."""
 
     k_neighbors: int = 5
     max_neighbor_distance: float = 1.0
@@ -44,6 +49,7 @@ class FeatureIcpConfig:
     transformation_epsilon: float = 1e-6
     fitness_epsilon: float = 1e-6
     threads: int = 2
+    scatter_cycle_tolerance: float = 0.002
 
     def __post_init__(self) -> None:
         if self.k_neighbors < 3:
@@ -52,6 +58,8 @@ class FeatureIcpConfig:
             raise ConfigError(
                 "need max_neighbor_distance > 0, edge_ratio >= 1, max_iterations >= 1"
             )
+        if self.scatter_cycle_tolerance < 0:
+            raise ConfigError("scatter_cycle_tolerance must be >= 0 (0 = off)")
 
 
 class FeatureTarget:
@@ -169,6 +177,36 @@ def _plane_terms(
     return planes[ok][flat], c[flat], n[:, :, None] * n[:, None, :], r
 
 
+def nearest_pairs(
+    moved: np.ndarray, target: FeatureTarget | None, max_distance: float, threads: int = 2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) bool rows of ``moved`` (N, 3) with a ``target`` point within ``max_distance``
+    (m), those nearest points (n_ok, 3) and their distances (n_ok,) m."""
+    if target is None or not len(target) or not len(moved):
+        return np.zeros(len(moved), dtype=bool), np.zeros((0, 3)), np.zeros(0)
+    d, j = target.tree.query(
+        moved, k=1, distance_upper_bound=max_distance, workers=_workers(len(moved), threads)
+    )
+    d, j = np.asarray(d).reshape(-1), np.asarray(j, dtype=np.int64).reshape(-1)
+    ok = d < max_distance
+    return ok, target.points[j[ok]], d[ok]
+
+
+def _scatter_terms(
+    points: np.ndarray, moved: np.ndarray, target: FeatureTarget | None, cfg: FeatureIcpConfig
+) -> Terms | None:
+    """Point-to-point terms of scatter points (vegetation, clutter: the open-road mode,
+    ``slam.odometry.open_road``) with their nearest map point within
+    ``max_neighbor_distance``: W = I, residual |p - q| (m). Ragged surfaces have no normal
+    to project on (their neighbourhoods' least-spread directions point anywhere: as
+    point-to-plane terms they held a 16-beam motorway scan at rest); what they show is
+    where they are."""
+    ok, q, d = nearest_pairs(moved, target, cfg.max_neighbor_distance, cfg.threads)
+    if not len(q):
+        return None
+    return points[ok], q, np.broadcast_to(np.eye(3), (len(q), 3, 3)), d
+
+
 def feature_icp_align(
     edge_xyz: np.ndarray,
     plane_xyz: np.ndarray,
@@ -177,6 +215,8 @@ def feature_icp_align(
     init_T: np.ndarray | None = None,
     cfg: FeatureIcpConfig | None = None,
     ground: FixedNormals | None = None,
+    scatter_xyz: np.ndarray | None = None,
+    scatter_map: FeatureTarget | None = None,
 ) -> RegistrationResult:
     """Align scan edge/plane points to the edge/plane maps; returns T_map_scan and H.
     ``ground``: the plane points on the scan's ground plane, which constrain along its
@@ -192,6 +232,7 @@ def feature_icp_align(
         )
     edge_nh = _Neighbourhoods(edge_map, len(edges), cfg)
     plane_nh = _Neighbourhoods(plane_map, len(planes), cfg)
+    scatter = np.zeros((0, 3)) if scatter_xyz is None else _check_points(scatter_xyz, "scatter")
 
     def associate(T):
         terms = []
@@ -203,6 +244,14 @@ def feature_icp_align(
         nh = plane_nh(moved)
         if nh is not None:
             terms.append(_plane_terms(planes, moved, nh, cfg, ground, T[:3, :3]))
+        # the fitness (RMSE) is the features': a scatter point's distance to the nearest
+        # map point is the map's spacing, not how well the scan fits (the gate compares it
+        # between frames, across the mode's switches)
+        sqd = np.concatenate([t[3] for t in terms] + [np.zeros(0)]) ** 2
+        if len(scatter):
+            st = _scatter_terms(scatter, transform(T, scatter), scatter_map, cfg)
+            if st is not None:
+                terms.append(st)
         if not terms:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), None, np.zeros(0)
         ps, qs, Ws, rs = zip(*terms, strict=True)
@@ -212,18 +261,19 @@ def feature_icp_align(
             np.concatenate(qs),
             np.concatenate(Ws),
             _huber(r, cfg.huber_delta),
-            r**2,
+            sqd,
         )
 
     init = np.eye(4) if init_T is None else np.asarray(init_T, dtype=np.float64)
     return solve_weighted(
         init,
         associate,
-        len(edges) + len(planes),
+        len(edges) + len(planes) + len(scatter),
         max_iterations=cfg.max_iterations,
         transformation_epsilon=cfg.transformation_epsilon,
         fitness_epsilon=cfg.fitness_epsilon,
         residual_dims=1,
+        cycle_tolerance=cfg.scatter_cycle_tolerance if len(scatter) else 0.0,
         # the numpy solver: FLOAM's Huber-weighted solve stops on 1e-6 epsilons, and the
         # kernels' last-bit rounding moved the corridor APE by 12 % over 300 frames (chaotic,
         # 2.07 -> 2.32 cm); its association, not the 6x6 algebra, is what costs here

@@ -27,7 +27,7 @@ import numpy as np
 
 from slam.deskew import se3_log
 from slam.errors import ConfigError
-from slam.registration.feature_icp import FeatureTarget
+from slam.registration.feature_icp import FeatureTarget, nearest_pairs
 from slam.registration.ground_plane import FixedNormals
 from slam.registration.neighbours import _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
@@ -69,7 +69,8 @@ class TwoStepConfig:
     # association: what moved since the map saw it (LeGO-LOAM removes no moving objects;
     # trucks passing a motorway start pulled it 0.9 m); 0 = Huber alone. Only for sensors
     # of ``outlier_min_beams`` or more: along the 16-beam building's plain corridors the
-    # few terms that hold the pose along them were cut (S route 6.0 -> 12.7 m)
+    # few terms that hold the pose along them were cut (S route 6.0 -> 12.7 m); LeGO's
+    # front ends cut on any sensor in the open-road mode, whose scatter points hold the pose
     outlier_sigmas: float = 3.0
     outlier_min_beams: int = 24
     transformation_epsilon: float = 1e-6
@@ -81,6 +82,9 @@ class TwoStepConfig:
     # the start's unconverged frames were rejected); 0 = off, LeGO-LOAM's (its motorway
     # start did not cycle; on without the plane its nuScenes keyframes went 138 -> 296 cm)
     cycle_tolerance: float = 0.0
+    # with the open-road mode's scatter points (nearest-point pairs, which change from one
+    # iteration to the next) the refinement's cycle tolerance is at least this (m, rad)
+    scatter_cycle_tolerance: float = 0.002
     # LOAM's solution remapping: translation directions with less than this fraction of the
     # best direction's information keep the prediction; 0 = off
     degenerate_ratio: float = 0.0
@@ -99,6 +103,8 @@ class TwoStepConfig:
             )
         if self.ground_weight < 0:
             raise ConfigError(f"two_step ground_weight must be >= 0, got {self.ground_weight}")
+        if self.scatter_cycle_tolerance < 0:
+            raise ConfigError("two_step scatter_cycle_tolerance must be >= 0 (0 = off)")
         if self.outlier_sigmas < 0 or self.outlier_min_beams < 0:
             raise ConfigError("two_step outlier_sigmas and outlier_min_beams must be >= 0")
         if not 0.0 <= self.degenerate_ratio < 1.0:
@@ -302,6 +308,21 @@ def plane_terms(
     return _scaled(t, cfg.noise_floor, cfg.outlier_sigmas)
 
 
+def scatter_terms(
+    T: np.ndarray, pts: np.ndarray, target: FeatureTarget | None, cfg: TwoStepConfig
+) -> Terms:
+    """Point-to-point residuals of the open-road mode's scatter points ``pts`` (sensor
+    frame; ``slam.odometry.open_road``) to their nearest map point within
+    ``max_neighbor_distance`` at pose T: W = I (``feature_icp``'s scatter terms)."""
+    if target is None or not len(pts):
+        return Terms.empty()
+    ok, q, d = nearest_pairs(transform(T, pts), target, cfg.max_neighbor_distance, cfg.threads)
+    t = Terms(
+        pts[ok], q, np.broadcast_to(np.eye(3), (len(q), 3, 3)), _huber(d, cfg.huber_delta), d**2
+    )
+    return _scaled(t, cfg.noise_floor, cfg.outlier_sigmas)
+
+
 def ground_terms(
     T: np.ndarray, pts: np.ndarray, plane_odom: tuple[np.ndarray, float], cfg: TwoStepConfig
 ) -> Terms:
@@ -426,10 +447,11 @@ def _two_steps(
     cfg: TwoStepConfig,
     cache: NeighbourCache | None = None,
     fixed: FixedNormals | None = None,
+    scatter: tuple[np.ndarray, FeatureTarget | None] | None = None,
 ) -> np.ndarray:
     """T after LeGO-LOAM's two restricted steps: [roll, pitch, z] from the ground points on
     the plane map (+ E_ground when ``ground_plane`` is given), then [yaw, x, y] from the
-    edges on the edge map (section III-D)."""
+    edges on the edge map (section III-D) and the ``scatter`` points on their map."""
 
     def step1(T_: np.ndarray) -> Terms:
         parts = [plane_terms(T_, ground, plane_map, cfg, cache, fixed)]
@@ -438,9 +460,14 @@ def _two_steps(
         return Terms.join(parts)
 
     T, _ = solve_restricted(T, step1, GROUND_DOF, cfg.step_iterations)
-    T, _ = solve_restricted(
-        T, lambda T_: edge_terms(T_, edges, edge_map, cfg, cache), EDGE_DOF, cfg.step_iterations
-    )
+
+    def step2(T_: np.ndarray) -> Terms:
+        parts = [edge_terms(T_, edges, edge_map, cfg, cache)]
+        if scatter is not None:
+            parts.append(scatter_terms(T_, *scatter, cfg))
+        return Terms.join(parts)
+
+    T, _ = solve_restricted(T, step2, EDGE_DOF, cfg.step_iterations)
     return T
 
 
@@ -457,9 +484,10 @@ def _refine(
     cache: NeighbourCache | None = None,
     fixed: FixedNormals | None = None,
     cycle_tolerance: float = 0.0,
+    scatter: tuple[np.ndarray, FeatureTarget | None] | None = None,
 ) -> RegistrationResult:
     """The 6-DoF refinement from T: E = E_edge + E_plane (+ E_ground when ``ground_plane`` is
-    given), the energy of 3.3, by ``solve_weighted``."""
+    given), the energy of 3.3, by ``solve_weighted``; + the ``scatter`` points' terms."""
 
     def associate(T_: np.ndarray):
         parts = [
@@ -468,8 +496,13 @@ def _refine(
         ]
         if ground_plane is not None:
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
+        # the fitness is the features' (``feature_icp``: a scatter point's distance to the
+        # nearest map point is the map's spacing, not how well the scan fits)
+        sqd = Terms.join(parts).sqd
+        if scatter is not None:
+            parts.append(scatter_terms(T_, *scatter, cfg))
         tm = Terms.join(parts)
-        return tm.p, tm.c, tm.W, tm.w, tm.sqd
+        return tm.p, tm.c, tm.W, tm.w, sqd
 
     return solve_weighted(
         T,
@@ -496,6 +529,8 @@ def two_step_align(
     ground_residual_xyz: np.ndarray | None = None,
     ground_normal: FixedNormals | None = None,
     settle: bool = False,
+    scatter_xyz: np.ndarray | None = None,
+    scatter_map: FeatureTarget | None = None,
 ) -> RegistrationResult:
     """Align a scan's features to the edge/plane maps: [roll, pitch, z] from the ground
     points, [yaw, x, y] from the edges, then a 6-DoF refinement on edges + planes (+ ground
@@ -509,6 +544,8 @@ def two_step_align(
     ``settle``: with ``cfg.outlier_sigmas`` > 0, solve with Huber alone first and cut from
     the pose it settles on (a start that is not a tracked prediction: from far off, the
     terms that would pull the pose there are what the cut removes).
+    ``scatter_xyz`` / ``scatter_map``: the open-road mode's scatter points and their map
+    (``slam.odometry.open_road``), point-to-point terms in the second step and the refinement.
     Returns T_map_scan with the Hessian of the final step (``solve_weighted``); with
     ``cfg.degenerate_ratio`` > 0 its weak translation directions keep ``init_T``
     (``remapped``)."""
@@ -516,6 +553,9 @@ def two_step_align(
     ground = _check_points(ground_xyz, "ground points")
     edges = _check_points(edge_xyz, "edge points")
     planes = _check_points(plane_xyz, "plane points")
+    scatter = None
+    if scatter_xyz is not None and len(scatter_xyz) and scatter_map is not None:
+        scatter = (_check_points(scatter_xyz, "scatter points"), scatter_map)
     n_src = len(ground) + len(edges) + len(planes)
     if n_src < 6:
         raise RegistrationError(f"two-step matching needs at least 6 feature points, got {n_src}")
@@ -541,16 +581,20 @@ def two_step_align(
     if settle:
         cfg = replace(cfg, outlier_sigmas=0.0)
     if cfg.two_step and cfg.step_iterations > 0:
-        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache, fixed)
+        T = _two_steps(T, ground, g_res, edges, edge_map, plane_map, gp, cfg, cache, fixed, scatter)
     surf = np.concatenate([ground, planes])
     cycle = cfg.cycle_tolerance if ground_normal is not None else 0.0
+    if scatter is not None:
+        cycle = max(cycle, cfg.scatter_cycle_tolerance)
+    n_src += 0 if scatter is None else len(scatter[0])
     res = _refine(
-        T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed, cycle
-    )
+        T, edges, surf, g_res, edge_map, plane_map, gp, n_src, cfg, cache, surf_fixed, cycle,
+        scatter,
+    )  # fmt: skip
     if settle and cut > 0:
         res = _refine(
             res.T_target_source, edges, surf, g_res, edge_map, plane_map, gp, n_src,
-            replace(cfg, outlier_sigmas=cut), cache, surf_fixed, cycle,
+            replace(cfg, outlier_sigmas=cut), cache, surf_fixed, cycle, scatter,
         )  # fmt: skip
     if cfg.degenerate_ratio > 0:
         res, _ = remapped(res, T_start, cfg.degenerate_ratio)
