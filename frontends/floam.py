@@ -16,7 +16,7 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.odometry.config import check_positive
-from slam.odometry.open_road import OpenRoad, OpenRoadScan
+from slam.odometry.open_road import OpenRoad, OpenRoadScan, feature_scatter
 from slam.registration.feature_icp import FeatureIcpConfig, MapTreeCache, feature_icp_align
 from slam.registration.ground_plane import (
     FixedNormals,
@@ -69,7 +69,8 @@ class FloamConfig(CommonConfig):
     dropped them: nuScenes keyframes 39.9 -> 44.4 cm APE, 4 rejected; 0.1 m: 37.9 cm).
     scatter: the open-road mode (``slam.odometry.open_road``): on a road whose features all
     run along it, the points the features left out are registered too (point-to-surface,
-    their own map) and the ground is a plane on every sensor."""
+    their own map) and the ground is a plane on every sensor; ``at_start`` off
+    (``open_road.feature_scatter``)."""
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
     registration: FeatureIcpConfig = field(default_factory=FeatureIcpConfig)
@@ -80,7 +81,7 @@ class FloamConfig(CommonConfig):
     max_registration_points: int = 0
     ground: GroundPlaneConfig = field(default_factory=_ground)
     ground_edge_band: float = 0.1
-    scatter: ScatterConfig = field(default_factory=ScatterConfig)
+    scatter: ScatterConfig = field(default_factory=feature_scatter)
 
     def __post_init__(self) -> None:
         super().__post_init__()

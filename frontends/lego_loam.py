@@ -27,7 +27,7 @@ from slam.features.thinning import thin_to_count, voxel_thin
 from slam.mapping.local_map import LocalMapConfig, VoxelHashMap
 from slam.odometry import CommonConfig, Estimate, ScanToMapFrontend
 from slam.odometry.config import check_positive
-from slam.odometry.open_road import OpenRoad, OpenRoadScan
+from slam.odometry.open_road import OpenRoad, OpenRoadScan, feature_scatter
 from slam.registration.feature_icp import FeatureTarget, MapTreeCache
 from slam.registration.ground_plane import (
     FixedNormals,
@@ -150,7 +150,7 @@ class LegoLoamConfig(CommonConfig):
     scatter: the open-road mode (``slam.odometry.open_road``): on a road whose features all
     run along it, the points the segmentation dropped (vegetation, clutter) are matched too
     (point-to-point, their own map; in the second step and the refinement) and the ground
-    is a plane on every sensor."""
+    is a plane on every sensor; ``at_start`` off (``open_road.feature_scatter``)."""
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -162,7 +162,7 @@ class LegoLoamConfig(CommonConfig):
     plane_map: LocalMapConfig = field(default_factory=_plane_map)
     max_surface_points: int = 0
     ground_plane: GroundPlaneConfig = field(default_factory=_ground_plane)
-    scatter: ScatterConfig = field(default_factory=ScatterConfig)
+    scatter: ScatterConfig = field(default_factory=feature_scatter)
 
     def __post_init__(self) -> None:
         super().__post_init__()
