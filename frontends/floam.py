@@ -68,7 +68,7 @@ class FloamConfig(CommonConfig):
     (m): edges this close to the plane are dropped; kerbs stand higher and stay (0.2 m
     dropped them: nuScenes keyframes 39.9 -> 44.4 cm APE, 4 rejected; 0.1 m: 37.9 cm).
     scatter: the open-road mode (``slam.odometry.open_road``): on a road whose features all
-    run along it, the points the features left out are registered too (point-to-surface,
+    run along it, the points the features left out are registered too (point to point,
     their own map) and the ground is a plane on every sensor; ``at_start`` off
     (``open_road.feature_scatter``)."""
 

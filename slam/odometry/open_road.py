@@ -3,7 +3,7 @@
 On an open road the LOAM features run along the road and hold the scan at the pose the map
 was made from (``slam.features.scatter``). In the mode, a front end also registers the
 points its feature selection left out, off the ground (vegetation, clutter), against a map
-of their own, by ``feature_icp``'s point-to-surface terms; what moves with the car (the
+of their own, point to point (``feature_icp``, ``two_step``); what moves with the car (the
 traffic) enters no map before a second scan confirms it (``slam.mapping.second_sighting``).
 improved_floam has its own: its GICP registers the scatter points against its one map.
 """
