@@ -196,13 +196,6 @@ class Floam(ScanToMapFrontend):
 
     def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
         f, T = est.pending, est.pose
-        sensor = np.concatenate([f.edges, f.planes, f.road.scatter])
-        world = sensor @ T[:3, :3].T + T[:3, 3]
-        keep = self.open_road.kept(f.road, world, sensor, self.cfg.ground.band)
-        cuts = np.cumsum([len(f.edges), len(f.planes)])
-        edges, planes, scatter = np.split(world, cuts)
-        k_e, k_p, k_s = np.split(keep, cuts)
-        self.edge_map.add(edges[k_e], origin=T[:3, 3])
-        self.plane_map.add(planes[k_p], origin=T[:3, 3])
-        if len(scatter):
-            self.open_road.map.add(scatter[k_s], origin=T[:3, 3])
+        edges, planes = self.open_road.insert(f.road, f.edges, f.planes, T, self.cfg.ground.band)
+        self.edge_map.add(edges, origin=T[:3, 3])
+        self.plane_map.add(planes, origin=T[:3, 3])

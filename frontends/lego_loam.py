@@ -355,15 +355,8 @@ class LegoLoam(ScanToMapFrontend):
 
     def _insert(self, est: Estimate[EdgesAndPlanes], timings: dict) -> None:
         f, T = est.pending, est.pose
-        sensor = np.concatenate([f.edges, f.planes, f.road.scatter])
-        world = sensor @ T[:3, :3].T + T[:3, 3]
-        keep = self.open_road.kept(f.road, world, sensor, self.cfg.ground_plane.band)
-        cuts = np.cumsum([len(f.edges), len(f.planes)])
-        edges, planes, scatter = np.split(world, cuts)
-        k_e, k_p, k_s = np.split(keep, cuts)
-        self._add_features(edges[k_e], planes[k_p], T[:3, 3])
-        if len(scatter):
-            self.open_road.map.add(scatter[k_s], origin=T[:3, 3])
+        band = self.cfg.ground_plane.band
+        self._add_features(*self.open_road.insert(f.road, f.edges, f.planes, T, band), T[:3, 3])
 
     def _add_features(self, edges: np.ndarray, planes: np.ndarray, origin: np.ndarray) -> None:
         """Edges and plane points (odometry frame) into their maps; ``origin``: the sensor."""

@@ -147,7 +147,28 @@ class OpenRoad:
         d = d[np.isfinite(d)]
         return int(len(d)), float(np.sqrt(np.mean(d**2))) if len(d) else np.inf
 
-    def kept(self, part: OpenRoadScan, world: np.ndarray, sensor: np.ndarray, band: float):
+    def insert(
+        self,
+        part: OpenRoadScan,
+        edges: np.ndarray,
+        planes: np.ndarray,
+        T: np.ndarray,
+        band: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Put a trusted scan's scatter points into their map at pose ``T`` and return its
+        ``edges`` and ``planes`` (sensor frame) in the odometry frame, for the front end's
+        maps: in the mode only what a second scan confirms and the ground (within ``band``
+        m of the scan's plane); outside it every point."""
+        sensor = np.concatenate([edges, planes, part.scatter])
+        world = sensor @ T[:3, :3].T + T[:3, 3]
+        keep = self._kept(part, world, sensor, band)
+        cuts = np.cumsum([len(edges), len(planes)])
+        (e, p, s), (k_e, k_p, k_s) = np.split(world, cuts), np.split(keep, cuts)
+        if len(s):
+            self.map.add(s[k_s], origin=T[:3, 3])
+        return e[k_e], p[k_p]
+
+    def _kept(self, part: OpenRoadScan, world: np.ndarray, sensor: np.ndarray, band: float):
         """(N,) which of a scan's points (``world``: odometry frame; ``sensor``: the same in
         the sensor frame) enter the maps: in the mode those a second scan confirms and the
         ground; every point outside it."""

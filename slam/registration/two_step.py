@@ -498,7 +498,7 @@ def _refine(
             parts.append(ground_terms(T_, g_res, ground_plane, cfg))
         # the fitness is the features' (``feature_icp``: a scatter point's distance to the
         # nearest map point is the map's spacing, not how well the scan fits)
-        sqd = Terms.join(parts).sqd
+        sqd = np.concatenate([t.sqd for t in parts])
         if scatter is not None:
             parts.append(scatter_terms(T_, *scatter, cfg))
         tm = Terms.join(parts)
