@@ -92,6 +92,26 @@ class TrackingGate:
             ),
         )
 
+    def judge_after_previous(
+        self, res: RegistrationResult, min_eigenvalue: float, pose: np.ndarray,
+        T_before_pred: np.ndarray, stamp: float,
+    ) -> str | None:
+        """Why ``res`` ending at ``pose`` is not believable as the motion from the frame
+        before the last (``T_before_pred``: its prediction at ``stamp``), had the last step
+        been wrong; None: believe it (``previous_step_check``). The bound is one frame's,
+        as strict as the usual test. Only while tracking holds with a known velocity."""
+        if not (self._c.plausibility.previous_step_check and self.velocity_known) or self.lost:
+            return "no previous-step check"
+        return implausibility(
+            res,
+            min_eigenvalue,
+            self.normal,
+            np.linalg.inv(self.T_trusted) @ pose,
+            np.linalg.inv(T_before_pred) @ pose,
+            self._clock.duration(self.trusted_stamp, stamp),
+            self._c.plausibility,
+        )  # fmt: skip
+
     def may_have_missed(self, res: RegistrationResult, min_eigenvalue: float) -> bool:
         """Whether a registration rejected for its motion may be a true motion over sweeps
         the driver dropped: tracking holds with a known velocity, hypotheses are on and the

@@ -34,6 +34,15 @@ class MotionModel:
         self.motion_dt: float | None = None
         self.twist = np.zeros(6)
         self.n_frames = 0
+        # the frame before the last: its pose, its stamp, the motion that led to it (and its
+        # duration), and how many frames in a row taught the model (previous_step_check)
+        self.T_before: np.ndarray | None = None
+        self.stamp_before: float | None = None
+        self.motion_before: np.ndarray | None = None
+        self.dt_before: float | None = None
+        self.learned_run = 0
+        self._learned = False
+        self._stamp_last: float | None = None
 
     def predict(self, stamp: float) -> np.ndarray:
         """The initial guess of T_odom_sensor at ``stamp``."""
@@ -162,6 +171,8 @@ class MotionModel:
         """A tracked frame at ``pose``: its motion from the last frame and its duration; the
         smoothed twist is rescaled to a new duration before the new motion is mixed in."""
         dt_before = self.motion_dt
+        self.motion_before, self.dt_before = self.T_motion, dt_before
+        self._learned = True
         gap = self._clock.since_last(stamp)
         if gap is not None:
             self.motion_dt = gap
@@ -171,7 +182,28 @@ class MotionModel:
         old = self.twist * ratio if off_duration(ratio) else self.twist
         self.twist = a * old + (1.0 - a) * _twist(self.T_motion)
 
-    def advance(self, pose: np.ndarray) -> None:
-        """The frame is done: ``pose`` is the last pose."""
+    def advance(self, pose: np.ndarray, stamp: float | None = None) -> None:
+        """The frame (at ``stamp``) is done: ``pose`` is the last pose."""
+        self.T_before, self.stamp_before = self.T_last, self._stamp_last
         self.T_last = pose.copy()
+        self._stamp_last = None if stamp is None else float(stamp)
+        self.learned_run = self.learned_run + 1 if self._learned else 0
+        self._learned = False
         self.n_frames += 1
+
+    def before_last(self, stamp: float) -> np.ndarray | None:
+        """The prediction at ``stamp`` from the frame before the last, moved on by the
+        motion that led to it (None unless the last two frames taught the model with
+        motions of known duration): what the last step should have been if it was wrong."""
+        if (
+            self.learned_run < 2
+            or self.T_before is None
+            or self.stamp_before is None
+            or self.motion_before is None
+            or not self.dt_before
+        ):
+            return None
+        span = float(stamp) - self.stamp_before
+        if not span > 0:
+            return None
+        return self.T_before @ se3_exp(_twist(self.motion_before) * span / self.dt_before)

@@ -65,6 +65,11 @@ class PlausibilityConfig:
     # much smaller (inlier share, absolute). Along a plain street every start converges near
     # itself, so there the start, not the scan, would choose the motion.
     missed_min_gain: float = 0.05
+    # a registration rejected only for its motion may show that the previous step was the
+    # wrong one (accepted within the floor, 0.3 m short at 25 m/s): when it lies within the
+    # bound of the prediction from the motion before that step (two frames on), it is
+    # believed and the velocity restarts from the two frames' mean
+    previous_step_check: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.warmup < 0:
