@@ -1,5 +1,7 @@
-"""The gate's previous-step check: a registration rejected against a velocity that the
-previous, wrongly short step taught is believed when it follows the motion before it."""
+"""The gate around one bad frame at motorway speed: a registration rejected against the
+velocity a wrongly short step taught is believed when it follows the motion before it
+(``previous_step_check``), and after one lost frame the next registration is judged by
+the mean velocity over the stretch (``recovered_velocity_frames``)."""
 
 from __future__ import annotations
 
@@ -24,20 +26,22 @@ class Scripted(ScanToMapFrontend):
     """Registrations that land where the script says, whatever their start; every one
     fits alike (the gate's quality tests pass)."""
 
-    def __init__(self, cfg: CommonConfig, script: dict[int, float]):
+    def __init__(self, cfg: CommonConfig, script: dict[int, float], poor: set[int]):
         super().__init__(cfg)
         self.script = script
+        self.poor = poor  # frames whose registration fits 5x worse than usual
 
     def _estimate(self, scan: Scan, T_pred: np.ndarray, timings: dict, wide: bool) -> Estimate:
         if scan.index == 0:
             return Estimate(pose=np.eye(4))
+        rmse = 5e-2 if scan.index in self.poor else 1e-2
         res = RegistrationResult(
             T_target_source=_pose(self.script[scan.index]),
             H=np.eye(6) * 1e4,
             b=np.zeros(6),
             cost=1.0,
-            fitness=1e-4,
-            rmse=1e-2,
+            fitness=rmse**2,
+            rmse=rmse,
             num_inliers=900,
             num_source=1000,
             iterations=5,
@@ -50,13 +54,15 @@ class Scripted(ScanToMapFrontend):
         pass
 
 
-def _run(script: dict[int, float], check: bool) -> list:
+def _run(script: dict[int, float], check: bool, poor=(), recovered: int = 2) -> list:
     cfg = CommonConfig(
         deskew=False,
         start_max_speed=0.0,
-        plausibility=PlausibilityConfig(previous_step_check=check),
+        plausibility=PlausibilityConfig(
+            previous_step_check=check, recovered_velocity_frames=recovered
+        ),
     )
-    fe = Scripted(cfg, script)
+    fe = Scripted(cfg, script, set(poor))
     rng = np.random.default_rng(0)
     outs = []
     for i in range(max(script) + 1):
@@ -93,3 +99,18 @@ def test_a_wrong_registration_after_a_good_step_stays_rejected():
     assert outs[21].diagnostics.rejected
     assert not outs[21].diagnostics.counts.get("previous_step_off")
     assert abs(outs[21].pose[0, 3] - STEP * 21) < 1e-6  # the prediction, on the truth
+
+
+@pytest.mark.parametrize("recovered", [2, 0])
+def test_after_one_lost_frame_the_mean_velocity_judges(recovered):
+    # frame 20 fits poorly (rejected: the prediction stands), 21 is right, 22 slides 0.5 m
+    # back (a LeGO registration among the motorway's rails, lego_loam seed 2 frame 122)
+    outs = _run(_script(25, {22: -0.5}), True, poor={20}, recovered=recovered)
+    x = np.array([o.pose[0, 3] for o in outs])
+    assert outs[20].diagnostics.rejected and not outs[21].diagnostics.rejected
+    if recovered:
+        assert outs[22].diagnostics.rejected
+        assert abs(x[22] - STEP * 22) < 1e-6  # the mean velocity's prediction
+    else:  # not judged against a prediction: the slide is the trajectory
+        assert not outs[22].diagnostics.rejected
+        assert abs(x[22] - (STEP * 22 - 0.5)) < 1e-9

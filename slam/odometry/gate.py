@@ -93,8 +93,12 @@ class TrackingGate:
         )
 
     def judge_after_previous(
-        self, res: RegistrationResult, min_eigenvalue: float, pose: np.ndarray,
-        T_before_pred: np.ndarray, stamp: float,
+        self,
+        res: RegistrationResult,
+        min_eigenvalue: float,
+        pose: np.ndarray,
+        T_before_pred: np.ndarray,
+        stamp: float,
     ) -> str | None:
         """Why ``res`` ending at ``pose`` is not believable as the motion from the frame
         before the last (``T_before_pred``: its prediction at ``stamp``), had the last step
@@ -183,8 +187,13 @@ class TrackingGate:
         self.T_trusted = pose.copy()
         self.trusted_stamp = float(stamp)
         self.n_trusted += 1
-        # the velocity over dropped sweeps or a lost stretch is a guess, not a measurement
-        self.n_chained = 1 if missed or out.recovered else self.n_chained + 1
+        # the velocity over dropped sweeps or a long lost stretch is a guess, not a
+        # measurement; over a short one it is the mean of two trusted poses
+        short = out.recovered and out.n <= self._c.plausibility.recovered_velocity_frames
+        if missed or (out.recovered and not short):
+            self.n_chained = 1
+        else:
+            self.n_chained = 2 if short else self.n_chained + 1
         return out
 
     def miss(self) -> bool:

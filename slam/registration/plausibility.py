@@ -70,6 +70,10 @@ class PlausibilityConfig:
     # bound of the prediction from the motion before that step (two frames on), it is
     # believed and the velocity restarts from the two frames' mean
     previous_step_check: bool = True
+    # a lost stretch of at most this many frames (the lost ones and the one that recovers)
+    # gives the next frame a velocity to be judged by, the mean over the stretch: a
+    # registration that then slides 0.5 m back along a motorway is rejected (0: never)
+    recovered_velocity_frames: int = 2
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.warmup < 0:
