@@ -166,10 +166,13 @@ class TrackingGate:
         min_eigenvalue: float,
         learn: bool,
         missed: int = 0,
+        steady: bool = False,
     ) -> Trusted:
         """Book-keeping of a trusted pose: the running normal learns ``res`` when ``learn``
         (the scan entered the map), a lost stretch ends. ``missed`` > 0: sweeps were dropped
-        before it, the velocity is unknown until the next trusted pose."""
+        before it, the velocity is unknown until the next trusted pose. ``steady``: the pose
+        lies within the gate's bound of the prediction (a short lost stretch then gives a
+        velocity, ``recovered_velocity_frames``)."""
         out = Trusted()
         if res is not None and learn:
             since = self._clock.duration(self.trusted_stamp, stamp)
@@ -189,7 +192,8 @@ class TrackingGate:
         self.n_trusted += 1
         # the velocity over dropped sweeps or a long lost stretch is a guess, not a
         # measurement; over a short one it is the mean of two trusted poses
-        short = out.recovered and out.n <= self._c.plausibility.recovered_velocity_frames
+        frames = self._c.plausibility.recovered_velocity_frames
+        short = out.recovered and steady and out.n <= frames
         if missed or (out.recovered and not short):
             self.n_chained = 1
         else:

@@ -32,6 +32,7 @@ from slam.odometry.motion import MotionModel
 from slam.odometry.search import StartSearch
 from slam.registration.gicp import RegistrationError
 from slam.registration.information import information_from_hessian
+from slam.registration.plausibility import near_prediction
 from slam.rigid import kept_rigid
 from slam.types import Odometry, OdometryDiagnostics, Scan, TrackingStatus
 
@@ -304,9 +305,14 @@ class ScanToMapFrontend:
         min_eig = est.information.min_eigenvalue if est.information is not None else np.nan
         # the normal learns only from registrations the gate could test against a prediction
         tested = self.gate.n_trusted >= 2
-        trusted = self.gate.trust(
-            est.pose, f.stamp, est.result, min_eig, learn=moved and tested, missed=f.missed
+        since = self.clock.duration(self.gate.trusted_stamp, f.stamp)
+        steady = since is not None and near_prediction(
+            self._c.plausibility, np.linalg.inv(T_pred) @ est.pose, since
         )
+        trusted = self.gate.trust(
+            est.pose, f.stamp, est.result, min_eig, learn=moved and tested, missed=f.missed,
+            steady=steady,
+        )  # fmt: skip
         f.diag.reinitialised = trusted.reinitialised
         if trusted.recovered:  # the motion model restarts from the mean over the stretch
             self.motion.restart(trusted.T_rel, trusted.lost_for, trusted.n)

@@ -71,8 +71,10 @@ class PlausibilityConfig:
     # believed and the velocity restarts from the two frames' mean
     previous_step_check: bool = True
     # a lost stretch of at most this many frames (the lost ones and the one that recovers)
-    # gives the next frame a velocity to be judged by, the mean over the stretch: a
-    # registration that then slides 0.5 m back along a motorway is rejected (0: never)
+    # whose recovering pose lies within the bound of the prediction gives the next frame a
+    # velocity to be judged by, the mean over the stretch: a registration that then slides
+    # 0.5 m back along a motorway is rejected (0: never). A recovering pose off the
+    # prediction (a true jump over a dropped sweep) leaves the velocity unknown.
     recovered_velocity_frames: int = 2
 
     def __post_init__(self) -> None:
@@ -220,6 +222,14 @@ def prediction_bound(cfg: PlausibilityConfig, elapsed: float) -> float:
     """How far (m) a pose may leave the constant-velocity prediction over ``elapsed`` s:
     the floor plus what the bounded acceleration allows, a T^2 / 2."""
     return cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
+
+
+def near_prediction(cfg: PlausibilityConfig, T_pred_current: np.ndarray, elapsed: float) -> bool:
+    """Whether a pose ``T_pred_current`` off the constant-velocity prediction over
+    ``elapsed`` s is within the gate's bound of it (translation and rotation)."""
+    t, r = motion_magnitude(T_pred_current)
+    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
+    return t <= prediction_bound(cfg, elapsed) and r <= lim_r
 
 
 def _motion_problem(
