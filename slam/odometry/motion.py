@@ -191,10 +191,11 @@ class MotionModel:
         self._learned = False
         self.n_frames += 1
 
-    def before_last(self, stamp: float) -> np.ndarray | None:
+    def before_last(self, stamp: float) -> tuple[np.ndarray, float] | None:
         """The prediction at ``stamp`` from the frame before the last, moved on by the
-        motion that led to it (None unless the last two frames taught the model with
-        motions of known duration): what the last step should have been if it was wrong."""
+        motion that led to it, and the span (s) it covers (None unless the last two frames
+        taught the model with motions of known duration): what the last step should have
+        been if it was wrong."""
         if (
             self.learned_run < 2
             or self.T_before is None
@@ -206,4 +207,4 @@ class MotionModel:
         span = float(stamp) - self.stamp_before
         if not span > 0:
             return None
-        return self.T_before @ se3_exp(_twist(self.motion_before) * span / self.dt_before)
+        return self.T_before @ se3_exp(_twist(self.motion_before) * span / self.dt_before), span

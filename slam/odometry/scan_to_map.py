@@ -305,7 +305,8 @@ class ScanToMapFrontend:
         min_eig = est.information.min_eigenvalue if est.information is not None else np.nan
         # the normal learns only from registrations the gate could test against a prediction
         tested = self.gate.n_trusted >= 2
-        since = self.clock.duration(self.gate.trusted_stamp, f.stamp)
+        # only a recovering pose needs it (``recovered_velocity_frames``)
+        since = self.clock.duration(self.gate.trusted_stamp, f.stamp) if self.gate.lost else None
         steady = since is not None and near_prediction(
             self._c.plausibility, np.linalg.inv(T_pred) @ est.pose, since
         )
@@ -324,10 +325,10 @@ class ScanToMapFrontend:
         last (``previous_step_check``: a step accepted 0.36 m short within the floor, and
         the next registration, right, rejected against the short velocity), within one
         frame's bound."""
-        T_alt = self.motion.before_last(f.stamp)
-        if T_alt is None or self.motion.stamp_before is None:
+        before = self.motion.before_last(f.stamp)
+        if before is None:
             return
-        est, span = f.est, f.stamp - self.motion.stamp_before
+        (T_alt, span), est = before, f.est
         why = self.gate.judge_after_previous(
             est.result, est.information.min_eigenvalue, est.pose, T_alt, f.stamp
         )

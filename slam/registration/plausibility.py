@@ -224,12 +224,17 @@ def prediction_bound(cfg: PlausibilityConfig, elapsed: float) -> float:
     return cfg.prediction_floor + 0.5 * cfg.max_acceleration * elapsed**2
 
 
+def turn_bound(cfg: PlausibilityConfig, elapsed: float) -> float:
+    """How far (deg) a pose may turn off the constant-velocity prediction over ``elapsed`` s:
+    the floor plus what the bounded angular acceleration allows."""
+    return cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
+
+
 def near_prediction(cfg: PlausibilityConfig, T_pred_current: np.ndarray, elapsed: float) -> bool:
     """Whether a pose ``T_pred_current`` off the constant-velocity prediction over
     ``elapsed`` s is within the gate's bound of it (translation and rotation)."""
     t, r = motion_magnitude(T_pred_current)
-    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
-    return t <= prediction_bound(cfg, elapsed) and r <= lim_r
+    return t <= prediction_bound(cfg, elapsed) and r <= turn_bound(cfg, elapsed)
 
 
 def _motion_problem(
@@ -248,7 +253,7 @@ def _motion_problem(
         return f"turn rate {r / elapsed:.0f} deg/s > {cfg.max_turn_rate_deg:g} deg/s"
     t, r = motion_magnitude(T_pred_current)
     lim_t = prediction_bound(cfg, elapsed)
-    lim_r = cfg.prediction_floor_deg + 0.5 * cfg.max_angular_acceleration_deg * elapsed**2
+    lim_r = turn_bound(cfg, elapsed)
     if t > lim_t:
         return f"{t:.2f} m from the constant-velocity prediction (> {lim_t:.2f} m)"
     if r > lim_r:
