@@ -163,6 +163,8 @@ class Floam(ScanToMapFrontend):
             s_map = self.open_road.target() if road.on else None
             e_reg, p_reg = self._registered(edges, planes)
             rc = cfg.registration
+            if self.tracked_horizon is None:  # a search's start may be far off: cost may rise
+                rc = replace(rc, least_cost=False)
             ground = None
             if plane is not None:
                 ground = FixedNormals(on_ground(p_reg, plane, cfg.ground.band), plane[0])

@@ -140,3 +140,22 @@ def test_the_feature_front_ends_follow_a_16_beam_motorway_from_standstill(config
     assert abs(outs[-1].pose[0, 3] - true_x) < 0.1 * true_x
     held, _ = run_frontend(scans, config, ["frontend.scatter.mode=never"])
     assert abs(held[-1].pose[0, 3]) < 0.3 * true_x
+
+
+def test_a_scan_outside_the_mode_empties_the_scatter_map():
+    """The scatter map holds where the mode was last on; a trusted scan outside it empties
+    the map, so that where the mode comes on again its first scan is not judged against a
+    map that pairs nothing (``OpenRoad.insert``)."""
+    from slam.features.scatter import ScatterConfig
+    from slam.odometry.open_road import OpenRoad, OpenRoadScan
+
+    road = OpenRoad(ScatterConfig(confirm_distance=0.0))
+    rng = np.random.default_rng(0)
+    edges, planes = rng.uniform(-5, 5, (50, 3)), rng.uniform(-5, 5, (50, 3))
+    on = OpenRoadScan(True, rng.uniform(-20, 20, (500, 3)), 0.05, None)
+    road.insert(on, edges, planes, np.eye(4), 0.2)
+    assert len(road.map) > 0 and road.target() is not None
+    off = OpenRoadScan(False, np.zeros((0, 3)), 0.5, None)
+    e, p = road.insert(off, edges, planes, np.eye(4), 0.2)
+    assert len(road.map) == 0 and road.target() is None
+    assert len(e) == len(edges) and len(p) == len(planes)

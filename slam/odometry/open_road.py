@@ -158,7 +158,9 @@ class OpenRoad:
         """Put a trusted scan's scatter points into their map at pose ``T`` and return its
         ``edges`` and ``planes`` (sensor frame) in the odometry frame, for the front end's
         maps: in the mode only what a second scan confirms and the ground (within ``band``
-        m of the scan's plane); outside it every point."""
+        m of the scan's plane); outside it every point, and the scatter map is emptied (a
+        map of where the mode was last on pairs nothing where it comes on again: the scan's
+        scatter points then count, unpaired, against its inlier share)."""
         sensor = np.concatenate([edges, planes, part.scatter])
         world = sensor @ T[:3, :3].T + T[:3, 3]
         keep = self._kept(part, world, sensor, band)
@@ -166,6 +168,8 @@ class OpenRoad:
         (e, p, s), (k_e, k_p, k_s) = np.split(world, cuts), np.split(keep, cuts)
         if len(s):
             self.map.add(s[k_s], origin=T[:3, 3])
+        elif not part.on:  # what it held was seen where the mode was last on
+            self.map.clear()
         return e[k_e], p[k_p]
 
     def _kept(self, part: OpenRoadScan, world: np.ndarray, sensor: np.ndarray, band: float):

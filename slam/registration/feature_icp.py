@@ -38,7 +38,11 @@ class FeatureIcpConfig:
     having gone 2.5x as far in between, has converged (``solver.solve_weighted``): their
     nearest-point pairs change from one iteration to the next and the pose cycles within
     millimetres instead of meeting the 1e-6 epsilons (a 21 m/s motorway start: its second
-    frame, 2 cm from the truth, was rejected as unconverged); 0 = off."""
+    frame, 2 cm from the truth, was rejected as unconverged); 0 = off. least_cost: a
+    registration that reaches max_iterations after its re-associated cost rose ends at the
+    pose of least cost (``solver.solve_weighted``; the front end asks only from a tracked
+    prediction): its steps chased the pairs of a sparse map behind the scan (a 21 m/s VLP-16
+    start crept back 4 cm per iteration against its two-scan map)."""
 
     k_neighbors: int = 5
     max_neighbor_distance: float = 1.0
@@ -50,6 +54,7 @@ class FeatureIcpConfig:
     fitness_epsilon: float = 1e-6
     threads: int = 2
     scatter_cycle_tolerance: float = 0.002
+    least_cost: bool = True
 
     def __post_init__(self) -> None:
         if self.k_neighbors < 3:
@@ -232,7 +237,13 @@ def feature_icp_align(
         )
     edge_nh = _Neighbourhoods(edge_map, len(edges), cfg)
     plane_nh = _Neighbourhoods(plane_map, len(planes), cfg)
-    scatter = np.zeros((0, 3)) if scatter_xyz is None else _check_points(scatter_xyz, "scatter")
+    # scatter points count (in the pairs, the inlier share) only where they have a map: the
+    # mode's first scan after a stretch off it has none, and counted it halved the share,
+    # the gate rejected the scan and no scan entered the map again (a 1238 m city drive)
+    has_map = scatter_map is not None and len(scatter_map) > 0
+    scatter = np.zeros((0, 3))
+    if scatter_xyz is not None and has_map:
+        scatter = _check_points(scatter_xyz, "scatter")
 
     def associate(T):
         terms = []
@@ -274,6 +285,7 @@ def feature_icp_align(
         fitness_epsilon=cfg.fitness_epsilon,
         residual_dims=1,
         cycle_tolerance=cfg.scatter_cycle_tolerance if len(scatter) else 0.0,
+        least_cost=cfg.least_cost,
         # the numpy solver: FLOAM's Huber-weighted solve stops on 1e-6 epsilons, and the
         # kernels' last-bit rounding moved the corridor APE by 12 % over 300 frames (chaotic,
         # 2.07 -> 2.32 cm); its association, not the 6x6 algebra, is what costs here

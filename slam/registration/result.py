@@ -8,8 +8,8 @@ import numpy as np
 
 from slam.errors import SlamError
 
-STOP_REASONS = ("step", "fitness", "cycle", "stalled", "max_iterations")
-CONVERGED_REASONS = ("step", "fitness", "cycle")
+STOP_REASONS = ("step", "fitness", "cycle", "least_cost", "stalled", "max_iterations")
+CONVERGED_REASONS = ("step", "fitness", "cycle", "least_cost")
 
 
 class RegistrationError(SlamError):
@@ -29,10 +29,12 @@ class RegistrationResult:
     stop_reason: why the solver stopped, one of ``STOP_REASONS``: "step" (update below
     transformation_epsilon), "fitness" (relative cost change below fitness_epsilon),
     "cycle" (the pose came back to one of a few iterations before: the association cycles
-    around the minimum; only where the matcher asks for it), "stalled" (no damped step
-    lowered the cost although the Gauss-Newton step was not yet small: a saddle, a bad
-    association or numerical trouble) or "max_iterations".
-    converged is True only for "step", "fitness" and "cycle".
+    around the minimum; only where the matcher asks for it), "least_cost" (at the
+    iteration cap, the pose of least re-associated cost, which the later steps left; only
+    where asked), "stalled" (no damped step lowered the cost although the Gauss-Newton step
+    was not yet small: a saddle, a bad association or numerical trouble) or
+    "max_iterations". converged is True only for "step", "fitness", "cycle" and
+    "least_cost".
     """
 
     T_target_source: np.ndarray

@@ -188,6 +188,7 @@ def solve_weighted(
     predict_convergence: bool = False,
     prior: PosePrior | None = None,
     cycle_tolerance: float = 0.0,
+    least_cost: bool = False,
 ) -> RegistrationResult:
     """Gauss-Newton / Levenberg-Marquardt on SE(3) with re-association every iteration.
 
@@ -207,6 +208,10 @@ def solve_weighted(
     more than 2.5x as far in between (``_cycles``): the
     re-association cycles through a few sets of pairs around the minimum (a weakly
     constrained direction: a motorway's length) and no further step settles it.
+    least_cost: at max_iterations, when the re-associated cost is above the least it had,
+    end at that pose ("least_cost", converged): each step lowered the cost of its own pairs
+    but the next association rose it, so the steps chased the pairing (a sparse map behind
+    a scan at speed), not the fit. A run that converges is unchanged.
     """
     lin, cost_of = (_linearise, _cost) if reference else (kernels.linearise, kernels.cost)
     step_cost = cost_of if prior is None else _with_prior(cost_of, prior)
@@ -217,12 +222,15 @@ def solve_weighted(
     H, b = np.zeros((6, 6)), np.zeros(6)
     cost, n_in, sqd, iterations = 0.0, 0, np.zeros(0), 0
     visited: list[np.ndarray] = []
+    best = None  # (cost, T, H, b, sqd, n_in) of the least re-associated cost
     for it in range(1, max_iterations + 1):
         iterations = it
         p, q, W, w, sqd, H, b, cost = _associate_and_linearise(
             associate, T, lin, reference, min_inliers
         )
         n_in = len(p)
+        if least_cost and (best is None or cost < best[0]):
+            best = (cost, T.copy(), H, b, sqd, n_in)
         H_step, b_step, total = H, b, cost
         if prior is not None:
             H_p, b_p, c_p = prior.linearised(T)
@@ -249,4 +257,7 @@ def solve_weighted(
                 reason = "cycle"
                 break
             visited.append(T.copy())
+    if reason == "max_iterations" and best is not None and best[0] < cost:
+        cost, T, H, b, sqd, n_in = best
+        reason = "least_cost"
     return _result(T, H, b, cost, sqd, n_in, num_source, iterations, reason, residual_dims)
