@@ -103,7 +103,7 @@ class Floam(ScanToMapFrontend):
         self.edge_map = VoxelHashMap(self.cfg.edge_map)
         self.plane_map = VoxelHashMap(self.cfg.plane_map)
         self._edge_tree, self._plane_tree = MapTreeCache(), MapTreeCache()
-        self.open_road = OpenRoad(self.cfg.scatter)
+        self.open_road = OpenRoad(self.cfg.scatter, empty_outside=True)
 
     def _registered(self, edges: np.ndarray, planes: np.ndarray):
         """The edges and planes the ICP registers: all of them, or above

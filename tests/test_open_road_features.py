@@ -142,20 +142,27 @@ def test_the_feature_front_ends_follow_a_16_beam_motorway_from_standstill(config
     assert abs(held[-1].pose[0, 3]) < 0.3 * true_x
 
 
-def test_a_scan_outside_the_mode_empties_the_scatter_map():
-    """The scatter map holds where the mode was last on; a trusted scan outside it empties
-    the map, so that where the mode comes on again its first scan is not judged against a
-    map that pairs nothing (``OpenRoad.insert``)."""
+def test_a_scan_outside_the_mode_empties_floams_scatter_map():
+    """floam's scatter map holds where the mode was last on; a trusted scan outside it
+    empties the map, so that where the mode comes on again its first scan is not judged
+    against a map that pairs nothing (``OpenRoad.insert``). The LeGO front ends keep theirs:
+    their mode comes and goes within one corridor of the simulated building."""
+    from frontends.floam import Floam
+    from frontends.lego_loam import LegoLoam
     from slam.features.scatter import ScatterConfig
     from slam.odometry.open_road import OpenRoad, OpenRoadScan
 
-    road = OpenRoad(ScatterConfig(confirm_distance=0.0))
+    assert Floam().open_road.empty_outside and not LegoLoam().open_road.empty_outside
     rng = np.random.default_rng(0)
     edges, planes = rng.uniform(-5, 5, (50, 3)), rng.uniform(-5, 5, (50, 3))
     on = OpenRoadScan(True, rng.uniform(-20, 20, (500, 3)), 0.05, None)
-    road.insert(on, edges, planes, np.eye(4), 0.2)
-    assert len(road.map) > 0 and road.target() is not None
     off = OpenRoadScan(False, np.zeros((0, 3)), 0.5, None)
-    e, p = road.insert(off, edges, planes, np.eye(4), 0.2)
-    assert len(road.map) == 0 and road.target() is None
-    assert len(e) == len(edges) and len(p) == len(planes)
+    for empty_outside in (True, False):
+        road = OpenRoad(ScatterConfig(confirm_distance=0.0), empty_outside=empty_outside)
+        road.insert(on, edges, planes, np.eye(4), 0.2)
+        held = len(road.map)
+        assert held > 0 and road.target() is not None
+        e, p = road.insert(off, edges, planes, np.eye(4), 0.2)
+        assert len(road.map) == (0 if empty_outside else held)
+        assert (road.target() is None) == empty_outside
+        assert len(e) == len(edges) and len(p) == len(planes)
