@@ -146,3 +146,9 @@ def test_slam_run_says_when_the_open_road_mode_was_on():
     assert "52 % of the scans" in open_road_line({"frontend_means": {"open_road": 0.52}})
     assert open_road_line({"frontend_means": {"open_road": 0.0}}) is None
     assert open_road_line({}) is None
+    # improved_floam without the beams' calibration: most scans in the mode name the recipe
+    road = {"frontend_means": {"open_road": 0.9}}
+    assert "improved_floam_open_road" in open_road_line(road, recipe_hint=True)
+    assert "improved_floam_open_road" not in open_road_line(road)
+    city = {"frontend_means": {"open_road": 0.12}}
+    assert "improved_floam_open_road" not in open_road_line(city, recipe_hint=True)

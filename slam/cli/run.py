@@ -110,7 +110,9 @@ def print_run_summary(summary: dict[str, Any]) -> None:
         eprint(f"warning: {warning}")
     if warning := along_road_warning(metrics):
         eprint(f"warning: {warning}")
-    if line := open_road_line(metrics):
+    fe = summary["system"].config.frontend if "system" in summary else {}
+    learns = (fe.get("beam_calibration") or {}).get("enabled", False)
+    if line := open_road_line(metrics, fe.get("name") == "improved_floam" and not learns):
         eprint(line)
     for note in summary.get("gt_notes") or []:
         eprint(f"note: {note}")
@@ -141,16 +143,24 @@ def along_road_warning(metrics: dict[str, Any]) -> str | None:
     )
 
 
-def open_road_line(metrics: dict[str, Any]) -> str | None:
+def open_road_line(metrics: dict[str, Any], recipe_hint: bool = False) -> str | None:
     """One line saying for what share of the scans the front end's open-road mode was on
-    (``frontend.scatter.mode``); None when it never was."""
+    (``frontend.scatter.mode``); None when it never was. ``recipe_hint`` (improved_floam
+    without the beams' calibration): where the mode was on for most scans, the line names
+    the open-road recipe, which also learns the beams' angles (docs/robustness.md)."""
     share = (metrics.get("frontend_means") or {}).get("open_road") or 0.0
     if share <= 0:
         return None
-    return (
+    line = (
         f"open road: the front end also registered the points its features leave out on "
         f"{100 * share:.0f} % of the scans (frontend.scatter.mode; docs/robustness.md)"
     )
+    if recipe_hint and share > 0.5:
+        line += (
+            "; for open roads --config improved_floam_open_road also learns each beam's "
+            "angle offsets, which turn the attitude over long straight stretches"
+        )
+    return line
 
 
 def degenerate_warning(metrics: dict[str, Any], summary: dict[str, Any]) -> str | None:
