@@ -27,7 +27,7 @@ import numpy as np
 
 from slam.deskew import se3_log
 from slam.errors import ConfigError
-from slam.registration.feature_icp import FeatureTarget, nearest_pairs
+from slam.registration.feature_icp import _HORIZONTAL, FeatureTarget, nearest_pairs
 from slam.registration.ground_plane import FixedNormals
 from slam.registration.neighbours import _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
@@ -313,12 +313,16 @@ def scatter_terms(
 ) -> Terms:
     """Point-to-point residuals of the open-road mode's scatter points ``pts`` (sensor
     frame; ``slam.odometry.open_road``) to their nearest map point within
-    ``max_neighbor_distance`` at pose T: W = I (``feature_icp``'s scatter terms)."""
+    ``max_neighbor_distance`` at pose T, horizontal only (``feature_icp``'s scatter terms):
+    W = diag(1, 1, 0) in the odometry frame, residual the horizontal distance. Their heights
+    are the rings' (a beam meets a trunk at another height from every pose), not the pose's."""
     if target is None or not len(pts):
         return Terms.empty()
-    ok, q, d = nearest_pairs(transform(T, pts), target, cfg.max_neighbor_distance, cfg.threads)
+    moved = transform(T, pts)
+    ok, q, _ = nearest_pairs(moved, target, cfg.max_neighbor_distance, cfg.threads)
+    d = np.linalg.norm(moved[ok][:, :2] - q[:, :2], axis=1)
     t = Terms(
-        pts[ok], q, np.broadcast_to(np.eye(3), (len(q), 3, 3)), _huber(d, cfg.huber_delta), d**2
+        pts[ok], q, np.broadcast_to(_HORIZONTAL, (len(q), 3, 3)), _huber(d, cfg.huber_delta), d**2
     )
     return _scaled(t, cfg.noise_floor, cfg.outlier_sigmas)
 
