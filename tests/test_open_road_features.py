@@ -19,7 +19,7 @@ from slam.sim.cache import ensure_sequence
 from slam.sim.highway import highway
 from slam.sim.sensors import get_sensor
 from slam.sim.simulate import STAMP0, effective_model, frame_stamps, published_scan
-from tests.test_feature_icp import _ring_hits
+from tests.test_feature_icp import pole_scene
 
 STEP = 0.6  # m along the road between the map and the scan
 
@@ -93,15 +93,8 @@ def test_scatter_points_do_not_pitch_the_two_step_matcher():
     scatter points' heights are the rings', not the pose's; as 3D terms in the 6-DoF
     refinement they tilted a 16-beam scan 1.5 m on from its map (300 ground points against 80
     poles: 0.0065 deg, 0.001 deg horizontal only); the ground holds the height and tilt."""
-    rng = np.random.default_rng(0)
-    elevations = np.arange(-15, 16, 2.0)
-    a, r = rng.uniform(0, 2 * np.pi, 80), rng.uniform(6, 30, 80)
-    poles = np.c_[r * np.cos(a), r * np.sin(a)]
-    ground = np.c_[rng.uniform(-25, 25, (3000, 2)), np.zeros(3000)]
-    s0, s1 = np.array([0.0, 0, 1.8]), np.array([1.5, 0, 1.8])
-    truth = np.eye(4)
-    truth[:3, 3] = s1
-    g = ground[::10] - s1
+    ground, scan_poles, map_poles, truth = pole_scene()
+    g = ground[::10] - truth[:3, 3]
     res = two_step_align(
         g,
         np.zeros((0, 3)),
@@ -111,8 +104,8 @@ def test_scatter_points_do_not_pitch_the_two_step_matcher():
         truth,
         TwoStepConfig(),
         ground_normal=FixedNormals(np.ones(len(g), dtype=bool), np.array([0.0, 0, 1])),
-        scatter_xyz=_ring_hits(poles, s1, elevations) - s1,
-        scatter_map=FeatureTarget(_ring_hits(poles, s0, elevations)),
+        scatter_xyz=scan_poles,
+        scatter_map=FeatureTarget(map_poles),
     )
     D = np.linalg.inv(truth) @ res.T_target_source
     tilt = np.degrees(np.arccos(np.clip(D[2, 2], -1, 1)))

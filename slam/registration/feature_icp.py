@@ -182,7 +182,7 @@ def _plane_terms(
     return planes[ok][flat], c[flat], n[:, :, None] * n[:, None, :], r
 
 
-_HORIZONTAL = np.diag([1.0, 1.0, 0.0])
+HORIZONTAL = np.diag([1.0, 1.0, 0.0])  # W of a term across the horizontal only
 
 
 def nearest_pairs(
@@ -200,6 +200,15 @@ def nearest_pairs(
     return ok, target.points[j[ok]], d[ok]
 
 
+def horizontal_pairs(
+    moved: np.ndarray, target: FeatureTarget | None, max_distance: float, threads: int = 2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``nearest_pairs`` with the horizontal distance (m) of each pair: the open-road mode's
+    scatter terms, whose heights are the rings' (``HORIZONTAL``)."""
+    ok, q, _ = nearest_pairs(moved, target, max_distance, threads)
+    return ok, q, np.linalg.norm(moved[ok][:, :2] - q[:, :2], axis=1)
+
+
 def _scatter_terms(
     points: np.ndarray, moved: np.ndarray, target: FeatureTarget | None, cfg: FeatureIcpConfig
 ) -> Terms | None:
@@ -214,11 +223,10 @@ def _scatter_terms(
     a 1238 m city drive: APE 2.41 -> 4.07 m once the mode came on); the ground holds the
     height. Against the scan's ground normal instead of the frame's z, the motorway starts
     were worse (three of 18 more failed)."""
-    ok, q, _ = nearest_pairs(moved, target, cfg.max_neighbor_distance, cfg.threads)
+    ok, q, d = horizontal_pairs(moved, target, cfg.max_neighbor_distance, cfg.threads)
     if not len(q):
         return None
-    d = np.linalg.norm(moved[ok][:, :2] - q[:, :2], axis=1)
-    return points[ok], q, np.broadcast_to(_HORIZONTAL, (len(q), 3, 3)), d
+    return points[ok], q, np.broadcast_to(HORIZONTAL, (len(q), 3, 3)), d
 
 
 def feature_icp_align(

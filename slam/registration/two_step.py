@@ -27,7 +27,11 @@ import numpy as np
 
 from slam.deskew import se3_log
 from slam.errors import ConfigError
-from slam.registration.feature_icp import _HORIZONTAL, FeatureTarget, nearest_pairs
+from slam.registration.feature_icp import (
+    HORIZONTAL,
+    FeatureTarget,
+    horizontal_pairs,
+)
 from slam.registration.ground_plane import FixedNormals
 from slam.registration.neighbours import _workers
 from slam.registration.result import RegistrationError, RegistrationResult, _check_points
@@ -318,11 +322,9 @@ def scatter_terms(
     are the rings' (a beam meets a trunk at another height from every pose), not the pose's."""
     if target is None or not len(pts):
         return Terms.empty()
-    moved = transform(T, pts)
-    ok, q, _ = nearest_pairs(moved, target, cfg.max_neighbor_distance, cfg.threads)
-    d = np.linalg.norm(moved[ok][:, :2] - q[:, :2], axis=1)
+    ok, q, d = horizontal_pairs(transform(T, pts), target, cfg.max_neighbor_distance, cfg.threads)
     t = Terms(
-        pts[ok], q, np.broadcast_to(_HORIZONTAL, (len(q), 3, 3)), _huber(d, cfg.huber_delta), d**2
+        pts[ok], q, np.broadcast_to(HORIZONTAL, (len(q), 3, 3)), _huber(d, cfg.huber_delta), d**2
     )
     return _scaled(t, cfg.noise_floor, cfg.outlier_sigmas)
 
